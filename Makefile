@@ -1,0 +1,43 @@
+# Two entry points: `make demo` and `make test`. Both do all set-up first.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+# root here; elsewhere apt needs sudo
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+APT_PACKAGES := python3-venv python3-dev gcc pkg-config libgirepository1.0-dev libcairo2-dev \
+	gir1.2-aravis-0.8 aravis-tools-cli xvfb x11-xserver-utils xserver-xorg-core \
+	xserver-xorg-video-dummy iproute2 util-linux libgl1 libegl1
+STAMP := $(VENV)/.installed
+
+.PHONY: setup demo test lint bench eval clean
+
+setup: $(STAMP)
+
+$(VENV)/.apt: Makefile
+	@if ! dpkg -s $(APT_PACKAGES) >/dev/null 2>&1; then \
+	  echo "installing apt packages: $(APT_PACKAGES)"; \
+	  $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $(APT_PACKAGES) >/dev/null; \
+	fi
+	@mkdir -p $(VENV) && touch $@
+
+$(STAMP): $(VENV)/.apt requirements.lock pyproject.toml
+	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --disable-pip-version-check -r requirements.lock
+	$(BIN)/python -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
+	$(BIN)/rerun analytics disable >/dev/null 2>&1 || true
+	@touch $@
+
+demo: setup
+	$(BIN)/lightflow demo
+
+test: setup
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q
+
+bench: setup
+	$(BIN)/lightflow bench
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info
