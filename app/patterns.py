@@ -1,0 +1,93 @@
+"""Line patterns exactly as formats.md defines them (pure numpy).
+
+Line k covers the projector columns x with ``|x - u_k| <= width_px / 2``.
+Because a projector lights whole pixels, the light of line k physically spans
+``[first_lit - 0.5, last_lit + 0.5]``; :func:`line_footprints` gives these.
+
+For flow measurement every pattern has a continuous *line index* k(u): the
+lines sit at integer k, so a band's sweep divided by the local line interval
+is a flow in index units.  ``local_pitch(u)`` converts it to projector pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .rig import CHANNEL_INDEX, Pattern, ProjectorModel
+
+
+def line_centres(pattern: Pattern, width: int) -> np.ndarray:
+    """Nominal centres ``u_k`` of the lines, in projector pixels."""
+    if pattern.kind == "uniform":
+        n = math.floor((width - 1e-9 - pattern.offset_px) / pattern.pitch_px) + 1
+        return pattern.offset_px + np.arange(n) * pattern.pitch_px
+    n = pattern.lines
+    if pattern.kind == "exp2":
+        k = np.arange(0, n)
+        return width * (2.0 ** (k / n) - 1)
+    k = np.arange(1, n + 1)
+    return width * (2 - 2.0 ** (1 - k / n))
+
+
+def lit_columns(pattern: Pattern, width: int) -> np.ndarray:
+    """Boolean ``(width,)``: which projector columns the pattern lights."""
+    x = np.arange(width, dtype=np.float64)
+    lit = np.zeros(width, dtype=bool)
+    half = pattern.width_px / 2
+    for u in line_centres(pattern, width):
+        lo = max(0, math.ceil(u - half - 1e-9))
+        hi = min(width - 1, math.floor(u + half + 1e-9))
+        if hi >= lo:
+            lit[lo : hi + 1] |= np.abs(x[lo : hi + 1] - u) <= half + 1e-9
+    return lit
+
+
+def line_footprints(pattern: Pattern, width: int) -> np.ndarray:
+    """``(n, 2)`` continuous column intervals physically lit by each line."""
+    lit = lit_columns(pattern, width).astype(np.int8)
+    edges = np.diff(np.concatenate([[0], lit, [0]]))
+    starts = np.flatnonzero(edges == 1)
+    ends = np.flatnonzero(edges == -1) - 1
+    return np.stack([starts - 0.5, ends + 0.5], axis=1).astype(np.float64)
+
+
+def pattern_image(projector: ProjectorModel) -> np.ndarray:
+    """The RGB ``uint8`` image ``(height, width, 3)`` this projector shows."""
+    img = np.zeros((projector.height, projector.width, 3), dtype=np.uint8)
+    for pat in projector.patterns:
+        cols = lit_columns(pat, projector.width)
+        img[:, cols, CHANNEL_INDEX[pat.channel]] = 255
+    return img
+
+
+def _exp2_step(pattern: Pattern) -> float:
+    # symmetric difference (u_{k+1} - u_{k-1}) / 2 of an exp2 series, per unit of (u + W)
+    return (2 ** (1 / pattern.lines) - 2 ** (-1 / pattern.lines)) / 2
+
+
+def local_pitch(pattern: Pattern, width: int, u):
+    """Local line interval in projector pixels at column ``u``.
+
+    For exp2 patterns this is the exact symmetric difference
+    ``(u_{k+1} - u_{k-1}) / 2`` at a line ``u_k``, which is linear in ``u``.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    if pattern.kind == "uniform":
+        return np.full_like(u, pattern.pitch_px)
+    if pattern.kind == "exp2":
+        return (u + width) * _exp2_step(pattern)
+    return (2 * width - u) * _exp2_step(pattern)
+
+
+def line_index(pattern: Pattern, width: int, u):
+    """Continuous line index k(u) (integers at the line centres)."""
+    u = np.asarray(u, dtype=np.float64)
+    if pattern.kind == "uniform":
+        return (u - pattern.offset_px) / pattern.pitch_px
+    n = pattern.lines
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if pattern.kind == "exp2":
+            return n * np.log2(u / width + 1)
+        return n * (1 - np.log2(2 - u / width))

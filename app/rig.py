@@ -1,0 +1,352 @@
+"""Rig files (formats.md section 1): load, validate, save.
+
+A rig is one camera and one or two projectors with the line patterns they
+show.  Parsing is strict: unknown keys, missing keys, wrong types and wrong
+matrix shapes are rejected with a :class:`ConfigError` naming the file and the
+field, because other tools write these files and silent guesses would turn
+into wrong depth.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError
+
+RIG_FORMAT = "lightflow-rig/1"
+CHANNELS = ("red", "green", "blue")
+#: index of each channel in an RGB image
+CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
+PATTERN_KINDS = ("uniform", "exp2", "exp2-reversed")
+#: OpenCV accepts 4, 5, 8, 12 or 14 distortion coefficients; 14 adds a tilted sensor.
+DIST_LENGTHS = (4, 5, 8, 12, 14)
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """One set of vertical lines drawn in one colour channel.
+
+    Attributes
+    ----------
+    channel : str
+        ``red``, ``green`` or ``blue``.
+    kind : str
+        ``uniform``, ``exp2`` or ``exp2-reversed``.
+    width_px : float
+        Line width in projector pixels.
+    pitch_px, offset_px : float
+        Only for ``uniform``.
+    lines : int
+        Only for ``exp2`` and ``exp2-reversed``.
+    """
+
+    channel: str
+    kind: str
+    width_px: float
+    pitch_px: float = 0.0
+    offset_px: float = 0.0
+    lines: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"channel": self.channel, "kind": self.kind}
+        if self.kind == "uniform":
+            d.update(pitch_px=self.pitch_px, width_px=self.width_px, offset_px=self.offset_px)
+        else:
+            d.update(lines=self.lines, width_px=self.width_px)
+        return d
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera with OpenCV distortion."""
+
+    width: int
+    height: int
+    K: np.ndarray = field(repr=False)
+    dist: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+        }
+
+
+@dataclass(frozen=True)
+class ProjectorModel:
+    """A projector as an inverse camera, ``X_proj = R @ X_cam + t``."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray = field(repr=False)
+    dist: np.ndarray = field(repr=False)
+    R: np.ndarray = field(repr=False)
+    t: np.ndarray = field(repr=False)
+    patterns: tuple[Pattern, ...] = ()
+
+    @property
+    def centre_in_camera(self) -> np.ndarray:
+        """Projector centre of projection in camera coordinates (metres)."""
+        return -self.R.T @ self.t
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "patterns": [p.to_dict() for p in self.patterns],
+        }
+
+
+@dataclass(frozen=True)
+class Rig:
+    """One camera and one or two projectors."""
+
+    camera: CameraModel
+    projectors: tuple[ProjectorModel, ...]
+
+    @property
+    def patterns(self) -> list[tuple[ProjectorModel, Pattern]]:
+        """All (projector, pattern) pairs in file order: the two flows of the method."""
+        return [(p, pat) for p in self.projectors for pat in p.patterns]
+
+    @property
+    def single_projector(self) -> bool:
+        return len(self.projectors) == 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": RIG_FORMAT,
+            "camera": self.camera.to_dict(),
+            "projectors": [p.to_dict() for p in self.projectors],
+        }
+
+    def digest(self) -> str:
+        """A stable hash of the geometry and patterns (keys the LUT cache)."""
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def scaled(self, factor: float) -> Rig:
+        """The same rig with the camera resolution scaled (for small test renders)."""
+        cam = self.camera
+        K = cam.K.copy()
+        K[0, :] *= factor
+        K[1, :] *= factor
+        # pixel centres: x' + 0.5 = factor * (x + 0.5)
+        K[0, 2] += 0.5 * factor - 0.5
+        K[1, 2] += 0.5 * factor - 0.5
+        new_cam = CameraModel(
+            round(cam.width * factor), round(cam.height * factor), K, cam.dist.copy()
+        )
+        return Rig(new_cam, self.projectors)
+
+
+# ----------------------------------------------------------------------------- parsing
+
+
+class _Reader:
+    """Strict reader that names ``file: field`` in every error."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, where: str, what: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {where}: {what}")
+
+    def obj(self, value: Any, where: str, required: set[str], optional: set[str] = frozenset()):
+        if not isinstance(value, dict):
+            raise self.fail(where, f"expected an object, got {type(value).__name__}")
+        unknown = sorted(set(value) - required - set(optional))
+        if unknown:
+            allowed = ", ".join(sorted(required | set(optional)))
+            raise self.fail(where, f"unknown key {unknown[0]!r} (expected only: {allowed})")
+        missing = sorted(required - set(value))
+        if missing:
+            raise self.fail(where, f"missing key {missing[0]!r}")
+        return value
+
+    def number(self, value: Any, where: str, positive: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(where, f"expected a number, got {json.dumps(value)}")
+        if not math.isfinite(value):
+            raise self.fail(where, "expected a finite number")
+        if positive and value <= 0:
+            raise self.fail(where, f"expected a positive number, got {value}")
+        return float(value)
+
+    def integer(self, value: Any, where: str, minimum: int = 1) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(where, f"expected an integer, got {json.dumps(value)}")
+        if value < minimum:
+            raise self.fail(where, f"expected an integer >= {minimum}, got {value}")
+        return value
+
+    def matrix(self, value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
+        expected = "x".join(map(str, shape))
+        try:
+            arr = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            raise self.fail(where, f"expected a {expected} matrix of numbers") from None
+        if arr.shape != shape:
+            got = "x".join(map(str, arr.shape)) if arr.ndim else "a scalar"
+            raise self.fail(where, f"expected a {expected} matrix, got {got}")
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(where, "expected finite numbers")
+        return arr
+
+    def string(self, value: Any, where: str, choices: tuple[str, ...] | None = None) -> str:
+        if not isinstance(value, str):
+            raise self.fail(where, f"expected a string, got {json.dumps(value)}")
+        if choices is not None and value not in choices:
+            raise self.fail(where, f"expected one of {', '.join(choices)}, got {value!r}")
+        return value
+
+
+def _parse_intrinsics(rd: _Reader, d: dict, where: str):
+    width = rd.integer(d["width"], f"{where}.width")
+    height = rd.integer(d["height"], f"{where}.height")
+    K = rd.matrix(d["K"], f"{where}.K", (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]):
+        raise rd.fail(f"{where}.K", "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    dist_raw = d["dist"]
+    if not isinstance(dist_raw, list) or len(dist_raw) not in DIST_LENGTHS:
+        n = len(dist_raw) if isinstance(dist_raw, list) else "not a list"
+        raise rd.fail(f"{where}.dist", f"expected 5 coefficients (k1, k2, p1, p2, k3), got {n}")
+    dist = rd.matrix(dist_raw, f"{where}.dist", (len(dist_raw),))
+    return width, height, K, dist
+
+
+def parse_pattern(rd: _Reader, d: Any, where: str, proj_width: int) -> Pattern:
+    """Parse one pattern entry and check that it fits a projector ``proj_width`` wide."""
+    base = {"channel", "kind", "width_px"}
+    if not isinstance(d, dict):
+        raise rd.fail(where, "expected an object")
+    kind = rd.string(d.get("kind"), f"{where}.kind", PATTERN_KINDS)
+    if kind == "uniform":
+        rd.obj(d, where, base | {"pitch_px", "offset_px"})
+    else:
+        rd.obj(d, where, base | {"lines"})
+    channel = rd.string(d["channel"], f"{where}.channel", CHANNELS)
+    width = rd.number(d["width_px"], f"{where}.width_px", positive=True)
+    if kind == "uniform":
+        pitch = rd.number(d["pitch_px"], f"{where}.pitch_px", positive=True)
+        offset = rd.number(d["offset_px"], f"{where}.offset_px")
+        if width >= pitch / 2:
+            raise rd.fail(f"{where}.width_px", f"expected less than half the pitch ({pitch / 2:g})")
+        if not 0 <= offset < proj_width:
+            raise rd.fail(f"{where}.offset_px", f"expected 0 <= offset_px < {proj_width}")
+        n_lines = math.floor((proj_width - 1e-9 - offset) / pitch) + 1
+        if n_lines < 3:
+            raise rd.fail(
+                f"{where}.pitch_px",
+                f"pattern does not fit the projector: {n_lines} lines in {proj_width} px (need 3)",
+            )
+        return Pattern(channel, kind, width, pitch_px=pitch, offset_px=offset)
+    lines = rd.integer(d["lines"], f"{where}.lines", minimum=3)
+    # the narrowest gap between two exp2 lines is at the dense end
+    narrowest = proj_width * (2 ** (1 / lines) - 1)
+    if width >= narrowest / 2:
+        raise rd.fail(
+            f"{where}.lines",
+            f"pattern does not fit the projector: {lines} lines leave a {narrowest:.1f} px "
+            f"gap at the dense end, need more than twice width_px ({width:g})",
+        )
+    return Pattern(channel, kind, width, lines=lines)
+
+
+def rig_from_dict(data: Any, source: str = "rig") -> Rig:
+    """Build a :class:`Rig` from a parsed JSON object, rejecting anything off-contract.
+
+    Parameters
+    ----------
+    data : dict
+        The parsed JSON object.
+    source : str
+        Names the file (and the field prefix) in error messages.
+    """
+    rd = _Reader(source)
+    rd.obj(data, "rig", {"format", "camera", "projectors"})
+    if data["format"] != RIG_FORMAT:
+        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {data['format']!r}")
+    cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"})
+    camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"))
+    projs = data["projectors"]
+    if not isinstance(projs, list) or len(projs) not in (1, 2):
+        raise rd.fail("projectors", "expected a list of one or two projectors")
+    projectors = []
+    for i, pd in enumerate(projs):
+        where = f"projectors[{i}]"
+        rd.obj(pd, where, {"name", "width", "height", "K", "dist", "R", "t", "patterns"})
+        name = rd.string(pd["name"], f"{where}.name")
+        if not name or "/" in name:
+            raise rd.fail(f"{where}.name", "expected a non-empty name without '/'")
+        width, height, K, dist = _parse_intrinsics(rd, pd, where)
+        R = rd.matrix(pd["R"], f"{where}.R", (3, 3))
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+            raise rd.fail(f"{where}.R", "expected a rotation matrix (orthonormal, det +1)")
+        t = rd.matrix(pd["t"], f"{where}.t", (3,))
+        pats = pd["patterns"]
+        want = 2 if len(projs) == 1 else 1
+        if not isinstance(pats, list) or len(pats) != want:
+            raise rd.fail(
+                f"{where}.patterns",
+                f"expected {want} pattern{'s' if want > 1 else ''} for a "
+                f"{len(projs)}-projector rig",
+            )
+        patterns = tuple(
+            parse_pattern(rd, p, f"{where}.patterns[{j}]", width) for j, p in enumerate(pats)
+        )
+        projectors.append(ProjectorModel(name, width, height, K, dist, R, t, patterns))
+    names = [p.name for p in projectors]
+    if len(set(names)) != len(names):
+        raise rd.fail("projectors", f"projector names must differ, got {names}")
+    channels = [pat.channel for p in projectors for pat in p.patterns]
+    if len(set(channels)) != len(channels):
+        raise rd.fail("projectors", f"each pattern needs its own colour channel, got {channels}")
+    return Rig(camera, tuple(projectors))
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno}") from None
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Load and validate a rig file."""
+    path = Path(path)
+    return rig_from_dict(_read_json(path), str(path))
+
+
+def save_rig(rig: Rig, path: str | Path) -> None:
+    """Write a rig file atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(rig.to_dict(), indent=2) + "\n")
+    tmp.replace(path)
+
+
+def read_json(path: str | Path) -> Any:
+    """Read a JSON file, turning I/O and syntax errors into one-line ConfigErrors."""
+    return _read_json(Path(path))
