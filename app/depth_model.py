@@ -1,0 +1,395 @@
+"""Per-pixel depth model: the log flow ratio h_p(z) and its inverse (the LUT).
+
+For a camera pixel with ray ``r`` (z = 1), the surface point is ``z * r``.
+Projector i sees it at column ``u_i(z)`` (full OpenCV lens model), and its
+pattern has a continuous line index ``k_i(u)`` (integers at the lines).  A
+motion along the ray sweeps ``dk_i = k_i'(u_i) u_i'(z) dz``; the measured flow
+in index units is band length / line interval.  The ratio of the two flows
+removes ``dz``::
+
+    h_p(z) = log |k_1'(u_1(z)) u_1'(z)| - log |k_2'(u_2(z)) u_2'(z)|
+
+Working in projector pixels makes the paper's ``f2/f1`` conversion part of h.
+For a single projector with the exp2 pair, ``u_1 = u_2`` and ``u'`` cancels:
+``h_p(z) = log(P_2(u) / P_1(u))``, the log ratio of the local pitches, which the
+camera sees as the ratio of the apparent line intervals ``B_2 / B_1``.
+
+The LUT stores, per pixel of the analysis grid, ``z`` at ``M`` uniform steps of
+``h`` over the longest monotonic stretch of h_p on the working depth range;
+lookup is one fused, vectorised pass (:func:`lookup_depth`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numba as nb
+import numpy as np
+
+from .errors import ConfigError
+from .geometry import camera_rays
+from .patterns import _exp2_step
+from .rig import Rig
+
+LUT_VERSION = 3
+#: z samples per pixel in the LUT (100 bytes/pixel with the two scalars: 184 MB at 1600x1200)
+LUT_SAMPLES = 22
+#: forward samples of h(z) used to find the monotonic stretch
+FORWARD_SAMPLES = 96
+
+
+@dataclass(frozen=True)
+class DepthRange:
+    """Working depth range (metres) over which h_p(z) is inverted."""
+
+    near: float = 0.3
+    far: float = 3.0
+
+    def __post_init__(self):
+        if not 0 < self.near < self.far:
+            raise ConfigError(f"depth range: expected 0 < near < far, got {self.near}, {self.far}")
+
+
+# ---------------------------------------------------------------- pattern coding for numba
+
+_KIND_CODE = {"uniform": 0, "exp2": 1, "exp2-reversed": 2}
+
+
+def _pattern_params(rig: Rig) -> np.ndarray:
+    """Per pattern: [proj index, kind code, pitch or exp2 step, projector width]."""
+    rows = []
+    for pi, proj in enumerate(rig.projectors):
+        for pat in proj.patterns:
+            code = _KIND_CODE[pat.kind]
+            step = pat.pitch_px if code == 0 else _exp2_step(pat)
+            rows.append([pi, code, step, proj.width])
+    return np.array(rows, dtype=np.float64)
+
+
+def _projector_params(rig: Rig) -> np.ndarray:
+    """Per projector: R (9), t (3), fx, skew, cx, fy, cy, dist (12) = 29 numbers."""
+    out = np.zeros((len(rig.projectors), 29))
+    for i, p in enumerate(rig.projectors):
+        out[i, :9] = p.R.ravel()
+        out[i, 9:12] = p.t
+        out[i, 12:17] = [p.K[0, 0], p.K[0, 1], p.K[0, 2], p.K[1, 1], p.K[1, 2]]
+        d = p.dist[:12]
+        out[i, 17 : 17 + len(d)] = d
+    return out
+
+
+@nb.njit(cache=True, inline="always")
+def _proj_u_du(pp, x, y, z):
+    """Projector column u and du/dz for the camera point z * (x, y, 1)."""
+    # camera point and its derivative along the ray
+    X = pp[0] * x + pp[1] * y + pp[2]
+    Y = pp[3] * x + pp[4] * y + pp[5]
+    Z = pp[6] * x + pp[7] * y + pp[8]
+    px = z * X + pp[9]
+    py = z * Y + pp[10]
+    pz = z * Z + pp[11]
+    xn = px / pz
+    yn = py / pz
+    dxn = (X * pz - Z * px) / (pz * pz)
+    dyn = (Y * pz - Z * py) / (pz * pz)
+    k1, k2, p1, p2, k3, k4, k5, k6 = pp[17], pp[18], pp[19], pp[20], pp[21], pp[22], pp[23], pp[24]
+    s1, s2 = pp[25], pp[26]
+    r2 = xn * xn + yn * yn
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    rad = num / den
+    dnum = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
+    dden = k4 + r2 * (2.0 * k5 + 3.0 * r2 * k6)
+    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
+    xd = xn * rad + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn) + s1 * r2 + s2 * r2 * r2
+    yd = yn * rad + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn + pp[27] * r2 + pp[28] * r2 * r2
+    dr2 = 2 * (xn * dxn + yn * dyn)
+    dxd = (
+        dxn * rad
+        + xn * drad * dr2
+        + 2 * p1 * (dxn * yn + xn * dyn)
+        + p2 * (dr2 + 4 * xn * dxn)
+        + s1 * dr2
+        + 2 * s2 * r2 * dr2
+    )
+    dyd = (
+        dyn * rad
+        + yn * drad * dr2
+        + p1 * (dr2 + 4 * yn * dyn)
+        + 2 * p2 * (dxn * yn + xn * dyn)
+        + pp[27] * dr2
+        + 2 * pp[28] * r2 * dr2
+    )
+    u = pp[12] * xd + pp[13] * yd + pp[14]
+    du = pp[12] * dxd + pp[13] * dyd
+    return u, du, pz
+
+
+@nb.njit(cache=True, inline="always")
+def _local_pitch(code, step, width, u):
+    if code == 0:
+        return step
+    if code == 1:
+        return (u + width) * step
+    return (2.0 * width - u) * step
+
+
+@nb.njit(cache=True)
+def _h_of_z(projs, pats, single, x, y, z):
+    """h_p(z) = log|dk1/dz| - log|dk2/dz|; NaN where a projector cannot see the point."""
+    u1, du1, pz1 = _proj_u_du(projs[int(pats[0, 0])], x, y, z)
+    u2, du2, pz2 = _proj_u_du(projs[int(pats[1, 0])], x, y, z)
+    if pz1 <= 0.0 or pz2 <= 0.0:
+        return np.nan
+    p1 = _local_pitch(int(pats[0, 1]), pats[0, 2], pats[0, 3], u1)
+    p2 = _local_pitch(int(pats[1, 1]), pats[1, 2], pats[1, 3], u2)
+    if p1 <= 0.0 or p2 <= 0.0:
+        return np.nan
+    if single:
+        return math.log(p2 / p1)
+    if du1 == 0.0 or du2 == 0.0:
+        return np.nan
+    return math.log(abs(du1) / p1) - math.log(abs(du2) / p2)
+
+
+@nb.njit(cache=True, parallel=True)
+def _build_lut(rays, projs, pats, single, near, far, n_fwd, n_lut, min_slope, h0, inv_dh, table):
+    n = rays.shape[0]
+    inv_near = 1.0 / near
+    inv_far = 1.0 / far
+    for i in nb.prange(n):
+        x = rays[i, 0]
+        y = rays[i, 1]
+        hs = np.empty(n_fwd)
+        zs = np.empty(n_fwd)
+        for j in range(n_fwd):
+            zs[j] = 1.0 / (inv_near + (inv_far - inv_near) * j / (n_fwd - 1))
+            hs[j] = _h_of_z(projs, pats, single, x, y, zs[j])
+        # longest stretch where h is finite and strictly monotonic with |dh/dz| >= min_slope
+        best_s = 0
+        best_len = 0
+        run_s = 0
+        run_len = 0
+        run_sign = 0
+        for j in range(n_fwd - 1):
+            d = hs[j + 1] - hs[j]
+            ok = np.isfinite(d) and abs(d) >= min_slope * (zs[j + 1] - zs[j])
+            sign = 1 if d > 0 else -1
+            if ok and run_len > 0 and sign == run_sign:
+                run_len += 1
+            elif ok:
+                run_s = j
+                run_len = 1
+                run_sign = sign
+            else:
+                run_len = 0
+            if run_len > best_len:
+                best_len = run_len
+                best_s = run_s
+        if best_len < 4:
+            h0[i] = np.nan
+            inv_dh[i] = 0.0
+            for m in range(n_lut):
+                table[i, m] = np.nan
+            continue
+        a = best_s
+        b = best_s + best_len
+        ha = hs[a]
+        hb = hs[b]
+        lo = min(ha, hb)
+        hi = max(ha, hb)
+        dh = (hi - lo) / (n_lut - 1)
+        h0[i] = lo
+        inv_dh[i] = 1.0 / dh
+        # invert: bracket in the forward samples, then refine by secant/bisection on h(z)
+        for m in range(n_lut):
+            target = lo + dh * m
+            # find bracket j with target between hs[j], hs[j+1]
+            jj = a
+            for j in range(a, b):
+                if (hs[j] - target) * (hs[j + 1] - target) <= 0.0:
+                    jj = j
+                    break
+            za = zs[jj]
+            zb = zs[jj + 1]
+            fa = hs[jj] - target
+            fb = hs[jj + 1] - target
+            z = za
+            for _ in range(40):
+                if fb == fa:
+                    break
+                z = zb - fb * (zb - za) / (fb - fa)
+                if not (min(za, zb) <= z <= max(za, zb)):
+                    z = 0.5 * (za + zb)
+                fz = _h_of_z(projs, pats, single, x, y, z) - target
+                if abs(fz) < 1e-12:
+                    break
+                if fz * fa < 0.0:
+                    zb = z
+                    fb = fz
+                else:
+                    za = z
+                    fa = fz
+            table[i, m] = 1.0 / z
+
+
+@dataclass
+class DepthLUT:
+    """Inverse of h_p per grid pixel: ``z`` at ``LUT_SAMPLES`` uniform steps of h.
+
+    Attributes
+    ----------
+    stride : int
+        Grid stride in camera pixels (1 = every pixel).
+    h0, inv_dh : numpy.ndarray
+        ``(h, w)`` float32: first h of the table and 1 / step (0 where unusable).
+    table : numpy.ndarray
+        ``(h, w, M)`` float32 inverse depths 1/z (smoother in h than z).
+    """
+
+    stride: int
+    h0: np.ndarray
+    inv_dh: np.ndarray
+    table: np.ndarray
+
+    @property
+    def nbytes(self) -> int:
+        return self.h0.nbytes + self.inv_dh.nbytes + self.table.nbytes
+
+    @property
+    def usable(self) -> np.ndarray:
+        return self.inv_dh > 0
+
+
+def h_function(rig: Rig, rays_xy: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Evaluate h_p(z) for rays ``(n, 2)`` (normalised x, y) at depths ``z`` ``(n,)``.
+
+    Returns NaN where a projector cannot see the point.
+    """
+    projs, pats = _projector_params(rig), _pattern_params(rig)
+    return _h_many(projs, pats, rig.single_projector, rays_xy, np.broadcast_to(z, len(rays_xy)))
+
+
+@nb.njit(cache=True)
+def _h_many(projs, pats, single, xy, z):
+    out = np.empty(xy.shape[0])
+    for i in range(xy.shape[0]):
+        out[i] = _h_of_z(projs, pats, single, xy[i, 0], xy[i, 1], z[i])
+    return out
+
+
+def build_lut(
+    rig: Rig,
+    stride: int = 2,
+    depth_range: DepthRange = DepthRange(),
+    min_slope: float = 0.02,
+    progress=None,
+) -> DepthLUT:
+    """Tabulate the inverse of h_p(z) for every grid pixel.
+
+    Parameters
+    ----------
+    rig : Rig
+    stride : int
+        Analysis grid stride (every ``stride``-th row and column).
+    depth_range : DepthRange
+        Depths over which h is inverted.
+    min_slope : float
+        Smallest usable |dh/dz| in 1/m; flatter stretches are not invertible.
+    progress : callable, optional
+        Called with ``(done_rows, total_rows)``.
+    """
+    rays = camera_rays(rig.camera, stride)
+    gh, gw = rays.shape[:2]
+    flat = np.ascontiguousarray(rays[..., :2].reshape(-1, 2))
+    n = flat.shape[0]
+    h0 = np.empty(n)
+    inv_dh = np.empty(n)
+    table = np.empty((n, LUT_SAMPLES))
+    projs, pats = _projector_params(rig), _pattern_params(rig)
+    chunk = max(gw, (n // 20 // gw) * gw)
+    for s in range(0, n, chunk):
+        e = min(n, s + chunk)
+        _build_lut(
+            flat[s:e], projs, pats, rig.single_projector, depth_range.near, depth_range.far,
+            FORWARD_SAMPLES, LUT_SAMPLES, min_slope, h0[s:e], inv_dh[s:e], table[s:e],
+        )  # fmt: skip
+        if progress:
+            progress(e // gw, gh)
+    return DepthLUT(
+        stride,
+        h0.reshape(gh, gw).astype(np.float32),
+        inv_dh.reshape(gh, gw).astype(np.float32),
+        table.reshape(gh, gw, LUT_SAMPLES).astype(np.float32),
+    )
+
+
+def lut_cache_dir() -> Path:
+    base = os.environ.get("LIGHTFLOW_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "lightflow"
+    )
+    return Path(base)
+
+
+def load_or_build_lut(
+    rig: Rig, stride: int = 2, depth_range: DepthRange = DepthRange(), progress=None
+) -> DepthLUT:
+    """The LUT for this rig from the on-disk cache, building (and caching) it when absent.
+
+    The cache key hashes the rig, the stride, the depth range and the LUT version.
+    """
+    key = f"{rig.digest()}-s{stride}-{depth_range.near:g}-{depth_range.far:g}-v{LUT_VERSION}"
+    path = lut_cache_dir() / f"lut-{key}.npz"
+    if path.exists():
+        try:
+            with np.load(path) as d:
+                return DepthLUT(stride, d["h0"], d["inv_dh"], d["table"])
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged cache entry is rebuilt below
+    lut = build_lut(rig, stride, depth_range, progress=progress)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, h0=lut.h0, inv_dh=lut.inv_dh, table=lut.table)
+        tmp.replace(path)
+    except OSError:
+        pass  # caching is an optimisation; a read-only home must not stop a scan
+    return lut
+
+
+@nb.njit(cache=True, parallel=True)
+def _lookup(logr, h0, inv_dh, table, out):
+    gh, gw = logr.shape
+    m = table.shape[2]
+    for i in nb.prange(gh):
+        for j in range(gw):
+            h = logr[i, j]
+            k = inv_dh[i, j]
+            if not (k > 0.0) or not np.isfinite(h):
+                out[i, j] = np.nan
+                continue
+            t = (h - h0[i, j]) * k
+            if t < 0.0 or t > m - 1:
+                out[i, j] = np.nan
+                continue
+            # Catmull-Rom through the uniform samples (clamped at the ends)
+            j1 = min(int(t), m - 2)
+            f = t - j1
+            p1 = table[i, j, j1]
+            p2 = table[i, j, j1 + 1]
+            p0 = table[i, j, j1 - 1] if j1 > 0 else 2 * p1 - p2
+            p3 = table[i, j, j1 + 2] if j1 + 2 < m else 2 * p2 - p1
+            inv_z = p1 + 0.5 * f * (
+                p2 - p0 + f * (2 * p0 - 5 * p1 + 4 * p2 - p3 + f * (3 * (p1 - p2) + p3 - p0))
+            )
+            out[i, j] = 1.0 / inv_z
+
+
+def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray) -> np.ndarray:
+    """Depth ``z`` (metres) for a grid map of measured log flow ratios; NaN outside the LUT."""
+    out = np.empty(log_ratio.shape, dtype=np.float32)
+    _lookup(log_ratio.astype(np.float32, copy=False), lut.h0, lut.inv_dh, lut.table, out)
+    return out
