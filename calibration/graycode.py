@@ -16,7 +16,7 @@ a stripe edge decodes to one of the two neighbouring columns, never further off.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,19 +100,8 @@ class Decoded:
     black: np.ndarray
 
 
-def _decode_axis(frames: Sequence[np.ndarray], n_bits: int) -> np.ndarray:
-    """Binary value from ``n_bits`` (pattern, inverse) pairs, most significant first."""
-    value = np.zeros(frames[0].shape, np.int32)
-    bit = np.zeros(frames[0].shape, bool)
-    for i in range(n_bits):
-        g = frames[2 * i] > frames[2 * i + 1]
-        bit ^= g  # binary bit = previous binary bit XOR this Gray bit
-        value = (value << 1) | bit
-    return value
-
-
 def decode_graycode(
-    frames: Sequence[np.ndarray],
+    frames: Iterable[np.ndarray],
     width: int,
     height: int,
     min_contrast: float = 8.0,
@@ -120,9 +109,12 @@ def decode_graycode(
 ) -> Decoded:
     """Decode camera frames of one projector's ``graycode/1`` sequence.
 
+    Frames are consumed one at a time, so an iterator that loads them lazily
+    keeps memory low.
+
     Parameters
     ----------
-    frames : sequence of numpy.ndarray
+    frames : iterable of numpy.ndarray
         ``2 + 2 (nx + ny)`` grey camera images ``(h, w)`` in sequence order
         (any numeric dtype; 8-bit scale is assumed for ``min_contrast``).
     width, height : int
@@ -137,17 +129,41 @@ def decode_graycode(
     -------
     Decoded
         Projector coordinates per camera pixel and a validity mask.
+
+    Raises
+    ------
+    ValueError
+        If the number of frames is not ``2 + 2 (nx + ny)``.
     """
     nx, ny = bit_counts(width, height)
     expected = 2 + 2 * (nx + ny)
-    if len(frames) != expected:
-        raise ValueError(f"expected {expected} frames for {width}x{height}, got {len(frames)}")
-    f = [np.asarray(im, np.float32) for im in frames]
-    white, black = f[0], f[1]
+    it = iter(frames)
+    got = 0
+
+    def take() -> np.ndarray:
+        nonlocal got
+        try:
+            im = next(it)
+        except StopIteration:
+            raise ValueError(f"expected {expected} frames for a {width}x{height} projector, "
+                             f"got {got}") from None
+        got += 1
+        return np.asarray(im, np.float32)
+
+    white, black = take(), take()
     contrast = white - black
     valid = (contrast >= min_contrast) & (contrast >= min_relative_contrast * white)
-    x = _decode_axis(f[2 : 2 + 2 * nx], nx)
-    y = _decode_axis(f[2 + 2 * nx :], ny)
+    coords = []
+    for n_bits in (nx, ny):
+        value = np.zeros(white.shape, np.int32)
+        bit = np.zeros(white.shape, bool)
+        for _ in range(n_bits):
+            bit ^= take() > take()  # binary bit = previous binary bit XOR this Gray bit
+            value = (value << 1) | bit
+        coords.append(value)
+    if next(it, None) is not None:
+        raise ValueError(f"expected {expected} frames for a {width}x{height} projector, got more")
+    x, y = coords
     valid &= (x < width) & (y < height)
     proj = np.stack([x, y], axis=-1).astype(np.float32)
     return Decoded(proj, valid, white, black)

@@ -10,13 +10,13 @@ frames of the wrong size are :class:`~lightflow.app.errors.ConfigError` /
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-
 from lightflow.app.errors import ConfigError, FrameError
 from lightflow.app.rig import Pattern, _Reader, parse_pattern, read_json
 
@@ -139,21 +139,26 @@ class Session:
                 return p
         raise KeyError(name)
 
-    def load_frames(self, pose: Pose, projector: ProjectorSpec) -> list[np.ndarray]:
-        """Read the grey frames of one pose and projector, checking every file.
+    def iter_frames(self, pose: Pose, projector: ProjectorSpec) -> Iterator[np.ndarray]:
+        """Read the grey frames of one pose and projector lazily, checking every file.
 
-        Returns
-        -------
-        list of numpy.ndarray
+        Yields
+        ------
+        numpy.ndarray
             ``(height, width)`` float32 images on an 8-bit scale (16-bit files are
             divided by 257; colour is converted to grey).
         """
         labels = frame_labels(projector.width, projector.height)
-        return [
-            load_grey(self.root / rel, f"pose {pose.name}, projector {projector.name}, "
-                      f"frame {i} ({labels[i]})", self.camera_size)
-            for i, rel in enumerate(pose.frames[projector.name])
-        ]
+        for i, rel in enumerate(pose.frames[projector.name]):
+            yield load_grey(self.root / rel, self.frame_what(pose, projector, i, labels),
+                            self.camera_size)
+
+    @staticmethod
+    def frame_what(pose: Pose, projector: ProjectorSpec, index: int,
+                   labels: list[str] | None = None) -> str:
+        """``pose X, projector Y, frame N (label)`` for error messages."""
+        labels = labels or frame_labels(projector.width, projector.height)
+        return f"pose {pose.name}, projector {projector.name}, frame {index} ({labels[index]})"
 
 
 def load_grey(path: Path, what: str, size: tuple[int, int] | None = None) -> np.ndarray:

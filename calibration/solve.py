@@ -148,3 +148,159 @@ def stereo_extrinsics(
     )
     rms, R, T, per_view = out[0], out[5], out[6], out[-1]
     return Extrinsics(R, T.ravel(), float(rms), np.asarray(per_view).reshape(-1, 2))
+
+
+@dataclass(frozen=True)
+class ProjectorViews:
+    """A projector's observations for :func:`joint_refine`.
+
+    Attributes
+    ----------
+    K, dist, R, t : numpy.ndarray
+        Initial intrinsics and camera-to-projector motion.
+    views : list of (int, numpy.ndarray, numpy.ndarray)
+        ``(pose index, bool mask over the board points, (m, 2) projector pixels)``.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    views: list
+
+
+@dataclass(frozen=True)
+class JointResult:
+    """Jointly refined camera, projectors and board poses."""
+
+    camera_K: np.ndarray
+    camera_dist: np.ndarray
+    projectors: list  # (K, dist, R, t) per projector
+    camera_per_view: np.ndarray
+    projector_per_view: list  # per projector, RMS of each of its views
+    rms: float
+
+
+def _intr_vec(K, dist, n_dist):
+    return np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dist[:n_dist]])
+
+
+def _intr_mat(v, dist0, n_dist):
+    K = np.array([[v[0], 0, v[2]], [0, v[1], v[3]], [0, 0, 1.0]])
+    d = np.array(dist0, float).copy()
+    d[:n_dist] = v[4 : 4 + n_dist]
+    return K, d
+
+
+def joint_refine(
+    object_points: np.ndarray,
+    camera_points: Sequence[np.ndarray],
+    board_rvecs: Sequence[np.ndarray],
+    board_tvecs: Sequence[np.ndarray],
+    camera: Intrinsics,
+    projectors: Sequence[ProjectorViews],
+    n_dist: int = 4,
+    iterations: int = 50,
+) -> JointResult:
+    """Refine everything together: one board pose per view shared by all devices.
+
+    A Levenberg-Marquardt fit of camera intrinsics, each projector's intrinsics
+    and motion, and the board poses, to the corners seen by the camera and
+    mapped into the projectors.  Sharing the board poses lets the camera's
+    observations constrain the projectors' intrinsics (and vice versa).
+
+    Parameters
+    ----------
+    object_points : numpy.ndarray
+        ``(n, 3)`` board points (the same for every view).
+    camera_points : sequence of numpy.ndarray
+        ``(n, 2)`` camera pixels per view.
+    board_rvecs, board_tvecs : sequence of numpy.ndarray
+        Initial board-to-camera poses per view.
+    camera : Intrinsics
+        Initial camera intrinsics.
+    projectors : sequence of ProjectorViews
+    n_dist : int
+        Distortion coefficients refined (4: k1, k2, p1, p2; the rest stay fixed).
+    iterations : int
+    """
+    from lightflow.app.geometry import project_points
+
+    obj = np.asarray(object_points, float)
+    n_views = len(camera_points)
+    ni = 4 + n_dist
+    cam_obs = np.concatenate([np.asarray(c, float).reshape(-1, 2) for c in camera_points])
+    p0 = [_intr_vec(camera.K, camera.dist, n_dist)]
+    for pj in projectors:
+        p0 += [_intr_vec(pj.K, pj.dist, n_dist), cv2.Rodrigues(pj.R)[0].ravel(), pj.t.ravel()]
+    for rv, tv in zip(board_rvecs, board_tvecs, strict=True):
+        p0 += [np.ravel(rv), np.ravel(tv)]
+    p0 = np.concatenate(p0)
+    off_pose = ni + len(projectors) * (ni + 6)
+
+    def unpack(p):
+        Kc, dc = _intr_mat(p[:ni], camera.dist, n_dist)
+        projs = []
+        for j, pj in enumerate(projectors):
+            o = ni + j * (ni + 6)
+            K, d = _intr_mat(p[o : o + ni], pj.dist, n_dist)
+            rv, tv = p[o + ni : o + ni + 3], p[o + ni + 3 : o + ni + 6]
+            projs.append((K, d, cv2.Rodrigues(rv)[0], tv))
+        poses = [(cv2.Rodrigues(p[off_pose + 6 * i : off_pose + 6 * i + 3])[0],
+                  p[off_pose + 6 * i + 3 : off_pose + 6 * i + 6]) for i in range(n_views)]
+        return Kc, dc, projs, poses
+
+    def residuals(p):
+        Kc, dc, projs, poses = unpack(p)
+        Xc = np.stack([obj @ R.T + t for R, t in poses])  # (views, n, 3)
+        res = [(project_points(Kc, dc, Xc).reshape(-1, 2) - cam_obs).ravel()]
+        for (K, d, R, t), pj in zip(projs, projectors, strict=True):
+            pts = np.concatenate([Xc[i][m] for i, m, _ in pj.views]) @ R.T + t
+            obs = np.concatenate([np.asarray(q, float).reshape(-1, 2) for _, _, q in pj.views])
+            res.append((project_points(K, d, pts) - obs).ravel())
+        return np.concatenate(res)
+
+    p = p0.copy()
+    r = residuals(p)
+    cost = r @ r
+    lam = 1e-3
+    for _ in range(iterations):
+        J = np.empty((len(r), len(p)))
+        for k in range(len(p)):
+            h = 1e-6 * max(1.0, abs(p[k]))
+            q = p.copy()
+            q[k] += h
+            J[:, k] = (residuals(q) - r) / h
+        A = J.T @ J
+        g = J.T @ r
+        improved = False
+        for _ in range(10):
+            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
+            q = p + step
+            rq = residuals(q)
+            cq = rq @ rq
+            if cq < cost:
+                improved = True
+                rel = (cost - cq) / cost
+                p, r, cost = q, rq, cq
+                lam = max(lam / 10, 1e-9)
+                break
+            lam *= 10
+        if not improved or rel < 1e-10:
+            break
+    Kc, dc, projs, _ = unpack(p)
+    n = len(obj)
+    cam_res = r[: n_views * n * 2].reshape(n_views, n, 2)
+    cam_pv = np.sqrt((cam_res**2).sum(-1).mean(-1))
+    proj_pv = []
+    o = n_views * n * 2
+    for pj in projectors:
+        pv = []
+        for _, m, _ in pj.views:
+            k = int(m.sum()) * 2
+            e = r[o : o + k].reshape(-1, 2)
+            pv.append(float(np.sqrt((e**2).sum(-1).mean())))
+            o += k
+        proj_pv.append(np.array(pv))
+    rms = float(np.sqrt(cost / (len(r) / 2)))
+    return JointResult(Kc, dc, projs, cam_pv, proj_pv, rms)

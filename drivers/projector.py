@@ -29,7 +29,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
 from lightflow.app.errors import DriverError
 from lightflow.drivers.base import PatternOutput
 
@@ -352,7 +351,12 @@ class ProjectorWindows(PatternOutput):
             self._draw(slot)
             return True
 
-        window.push_handlers(on_close=on_close, on_expose=on_expose, on_draw=lambda: True)
+        def on_draw():
+            # only if some other loop redraws on a timer; Window.draw() flips after this
+            self._render(slot)
+            return True
+
+        window.push_handlers(on_close=on_close, on_expose=on_expose, on_draw=on_draw)
 
     def _verify_placement(self, slot: _Slot) -> None:
         info, window = slot.screen, slot.window
@@ -369,17 +373,24 @@ class ProjectorWindows(PatternOutput):
             f"{fb}); is a window manager moving it?"
         )
 
-    def _draw(self, slot: _Slot) -> None:
+    def _render(self, slot: _Slot) -> None:
+        """Draw the slot's texture into the back buffer: 1:1 at the top-left, black elsewhere."""
         from pyglet import gl
 
         window = slot.window
         window.switch_to()
-        h = slot.shape[0]
         gl.glDisable(gl.GL_BLEND)
         gl.glClearColor(0.0, 0.0, 0.0, 1.0)
         window.clear()
         # GL's origin is bottom-left: the image's top row goes to the screen's top row
-        slot.texture.blit(0, window.get_framebuffer_size()[1] - h)
+        slot.texture.blit(0, window.get_framebuffer_size()[1] - slot.shape[0])
+
+    def _draw(self, slot: _Slot) -> None:
+        """Render, flip, and return once the X server has the new frame."""
+        from pyglet import gl
+
+        window = slot.window
+        self._render(slot)
         window.flip()
         # wait until the swap really happened, and the X server has it
         gl.glFinish()

@@ -17,15 +17,18 @@ It prints ``ready`` on stdout once the camera answers, and stops on SIGTERM.
 from __future__ import annotations
 
 import argparse
-import os
+import fcntl
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import threading
-from pathlib import Path
 
 SIM_ADDRESS = "127.0.0.1"
 READY_TIMEOUT_S = 10.0
+SIOCGIFFLAGS = 0x8913
+IFF_UP = 0x1
 
 
 def private_netns_problem() -> str | None:
@@ -34,14 +37,19 @@ def private_netns_problem() -> str | None:
     Aravis discovery broadcasts on every interface; the tests must only ever
     see ``lo`` (``make test`` runs them under ``unshare --net``).
     """
-    names = sorted(os.listdir("/sys/class/net"))
+    # Ask the kernel about *this* namespace (/sys/class/net shows the one
+    # sysfs was mounted in, which unshare does not change).
+    names = sorted(name for _, name in socket.if_nameindex())
     if names != ["lo"]:
         return (
             f"the Aravis tests must run in a private network namespace (only 'lo'), "
             f"found interfaces {names}; run: unshare --net sh -c "
             f"'ip link set lo up && exec .venv/bin/python -m pytest -q tests/...'"
         )
-    if Path("/sys/class/net/lo/operstate").read_text().strip() == "down":
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        request = struct.pack("16sH14x", b"lo", 0)
+        flags = struct.unpack("16sH14x", fcntl.ioctl(sock, SIOCGIFFLAGS, request))[1]
+    if not flags & IFF_UP:
         return "loopback is down in this network namespace; run `ip link set lo up` first"
     return None
 

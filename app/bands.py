@@ -1,0 +1,377 @@
+"""Band extraction: sub-pixel band length and line interval per image row (numba).
+
+A line of width ``w`` swept by the motion over ``L`` camera pixels during the
+exposure leaves a trapezoid-shaped band: the line box convolved with the
+motion box, blurred by the optics.  Its full width at half of its *own*
+plateau height above its *own* background equals the sweep ``L`` exactly,
+whatever the line width, blur or the ratio sweep/interval — unlike a
+threshold at the local mean, which cuts the trapezoid at a height that
+depends on sweep/interval and biases each pattern differently.  So for every
+band we estimate the background from the gaps on both sides and the plateau
+from the band's centre, and locate the two half-height crossings by linear
+interpolation on the ramps (exact on a linear ramp).  Because height and
+background are measured per band, a band on dark print and a band on white
+paper give the same length: the albedo is normalised away locally.
+
+Rejected (``valid`` false), so that no depth is ever invented from them:
+bands without a clean gap on both sides (overlapping bands, sweep close to the
+interval), asymmetric bands (cut by an object boundary or the panel edge),
+bands whose neighbour intervals disagree (boundaries, missing lines), and
+faint bands.  Static lines are rejected later, where the line width in
+camera pixels is known (:mod:`lightflow.app.flow`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+#: band fields in the per-row output
+F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP = range(8)
+N_FIELDS = 8
+#: fields interpolated onto the grid by :func:`rasterise`
+GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP)
+
+
+@dataclass(frozen=True)
+class BandParams:
+    """Tuning of the band detector (defaults suit 8-bit and 16-bit images alike).
+
+    Attributes
+    ----------
+    min_contrast : float
+        Smallest band height above its background, as a fraction of full scale.
+    interval_tolerance : float
+        Largest relative difference between a band's two neighbour intervals.
+    symmetry_tolerance_px : float
+        Largest difference between the two ramp widths of one band.
+    min_gap_px : float
+        Flat background needed between the supports of neighbouring bands.
+    vertical_half : int
+        Rows averaged on each side of a grid row (along the lines) against noise.
+    """
+
+    min_contrast: float = 0.025
+    interval_tolerance: float = 0.2
+    symmetry_tolerance_px: float = 1.5
+    min_gap_px: float = 1.0
+    vertical_half: int = 1
+
+
+@nb.njit(cache=True, inline="always")
+def _crossing_left(x, j, level):
+    # walk left from j (x[j] >= level) to the first sample below level
+    while j > 0 and x[j - 1] >= level:
+        j -= 1
+    if j == 0:
+        return -1.0
+    a = x[j - 1]
+    b = x[j]
+    return (j - 1) + (level - a) / (b - a)
+
+
+@nb.njit(cache=True, inline="always")
+def _crossing_right(x, j, level):
+    n = x.shape[0]
+    while j < n - 1 and x[j + 1] >= level:
+        j += 1
+    if j == n - 1:
+        return -1.0
+    a = x[j]
+    b = x[j + 1]
+    return j + (a - level) / (a - b)
+
+
+@nb.njit(cache=True)
+def _sliding_mid(x, win, out):
+    """(max + min) / 2 over a centred window of ``win`` samples (van Herk / Gil-Werman)."""
+    n = x.shape[0]
+    r = win // 2
+    gmax = np.empty(n)
+    gmin = np.empty(n)
+    hmax = np.empty(n)
+    hmin = np.empty(n)
+    for j in range(n):
+        if j % win == 0:
+            gmax[j] = x[j]
+            gmin[j] = x[j]
+        else:
+            gmax[j] = max(gmax[j - 1], x[j])
+            gmin[j] = min(gmin[j - 1], x[j])
+    for j in range(n - 1, -1, -1):
+        if j == n - 1 or (j + 1) % win == 0:
+            hmax[j] = x[j]
+            hmin[j] = x[j]
+        else:
+            hmax[j] = max(hmax[j + 1], x[j])
+            hmin[j] = min(hmin[j + 1], x[j])
+    for j in range(n):
+        lo = max(0, j - r)
+        hi = min(n - 1, j + r)
+        mx = max(hmax[lo], gmax[hi])
+        mn = min(hmin[lo], gmin[hi])
+        out[j] = 0.5 * (mx + mn)
+
+
+@nb.njit(cache=True)
+def _row_signal(img, y, weights, vhalf, out):
+    h, w = img.shape[0], img.shape[1]
+    out[:] = 0.0
+    total = 0.0
+    for dy in range(-vhalf, vhalf + 1):
+        yy = min(max(y + dy, 0), h - 1)
+        wv = 1.0 + vhalf - abs(dy)
+        total += wv
+        for j in range(w):
+            out[j] += wv * (
+                weights[0] * img[yy, j, 0] + weights[1] * img[yy, j, 1] + weights[2] * img[yy, j, 2]
+            )
+    for j in range(w):
+        out[j] /= total
+
+
+@nb.njit(cache=True)
+def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
+    """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
+    n = x.shape[0]
+    max_b = out.shape[0]
+    # segments above the sliding mid-level
+    seg_a = np.empty(max_b + 1, np.int64)
+    seg_b = np.empty(max_b + 1, np.int64)
+    ns = 0
+    j = 0
+    while j < n and ns < max_b + 1:
+        if x[j] > thr[j]:
+            a = j
+            while j < n and x[j] > thr[j]:
+                j += 1
+            seg_a[ns] = a
+            seg_b[ns] = j - 1
+            ns += 1
+        else:
+            j += 1
+    ns = min(ns, max_b)
+    for k in range(ns):
+        for f in range(N_FIELDS):
+            out[k, f] = np.nan
+        out[k, F_VALID] = 0.0
+        a = seg_a[k]
+        b = seg_b[k]
+        if a == 0 or b == n - 1:
+            continue  # needs a gap on both sides
+        # background: mean of the middle half of each neighbouring gap
+        gl0 = seg_b[k - 1] + 1 if k > 0 else max(0, a - 24)
+        gl1 = a - 1
+        gr0 = b + 1
+        gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
+        if gl1 < gl0 or gr1 < gr0:
+            continue
+        bl = 0.0
+        c = 0
+        q = (gl1 - gl0 + 1) // 4
+        for i in range(gl0 + q, gl1 - q + 1):
+            bl += x[i]
+            c += 1
+        bl /= c
+        br = 0.0
+        c = 0
+        q = (gr1 - gr0 + 1) // 4
+        for i in range(gr0 + q, gr1 - q + 1):
+            br += x[i]
+            c += 1
+        br /= c
+        # first pass: half of the maximum
+        jm = a
+        for i in range(a, b + 1):
+            if x[i] > x[jm]:
+                jm = i
+        bg = 0.5 * (bl + br)
+        top = x[jm]
+        if top - bg < min_contrast:
+            continue
+        xl = _crossing_left(x, jm, bg + 0.5 * (top - bg))
+        xr = _crossing_right(x, jm, bg + 0.5 * (top - bg))
+        if xl < 0 or xr < 0:
+            continue
+        # plateau: mean over the central half of the band (the max alone is biased by noise)
+        # (the same definition as lightflow.app.profile_model.measure)
+        l1 = xr - xl
+        p0 = int(np.ceil(xl + 0.25 * l1))
+        p1 = int(np.floor(xr - 0.25 * l1))
+        if p1 >= p0:
+            s = 0.0
+            for i in range(p0, p1 + 1):
+                s += x[i]
+            peak = s / (p1 - p0 + 1)
+        else:
+            peak = top
+        # background interpolated to the band centre
+        mid = 0.5 * (xl + xr)
+        cl = 0.5 * (gl0 + gl1)
+        cr = 0.5 * (gr0 + gr1)
+        bg = bl + (br - bl) * (mid - cl) / (cr - cl)
+        height = peak - bg
+        if height < min_contrast:
+            continue
+        level = bg + 0.5 * height
+        xl = _crossing_left(x, jm, level)
+        xr = _crossing_right(x, jm, level)
+        if xl < 0 or xr < 0:
+            continue
+        # ramps at 20 % height: symmetric for a band the surface carried whole
+        x20l = _crossing_left(x, jm, bg + 0.2 * height)
+        x20r = _crossing_right(x, jm, bg + 0.2 * height)
+        if x20l < 0 or x20r < 0:
+            continue
+        ramp_l = xl - x20l
+        ramp_r = x20r - xr
+        out[k, F_CENTRE] = 0.5 * (xl + xr)
+        out[k, F_LENGTH] = xr - xl
+        out[k, F_START] = xl
+        out[k, F_END] = xr
+        out[k, F_HEIGHT] = height
+        out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
+        ok = abs(ramp_l - ramp_r) <= sym_tol + 0.25 * max(ramp_l, ramp_r)
+        # support of the band (ramp extrapolated to zero) must leave a flat gap
+        out[k, F_INTERVAL] = (ramp_l + ramp_r) / 0.6  # temporarily: full ramp length
+        out[k, F_VALID] = 1.0 if ok else 0.0
+    # intervals from neighbour centres; consistency and gap checks
+    for k in range(ns):
+        ramp = out[k, F_INTERVAL]
+        out[k, F_INTERVAL] = np.nan
+        if k == 0 or k == ns - 1:
+            out[k, F_VALID] = 0.0
+            continue
+        cp = out[k - 1, F_CENTRE]
+        c0 = out[k, F_CENTRE]
+        cn = out[k + 1, F_CENTRE]
+        if not (np.isfinite(cp) and np.isfinite(c0) and np.isfinite(cn)):
+            out[k, F_VALID] = 0.0
+            continue
+        d1 = c0 - cp
+        d2 = cn - c0
+        interval = 0.5 * (d1 + d2)
+        out[k, F_INTERVAL] = interval
+        if out[k, F_VALID] == 0.0:
+            continue
+        if abs(d1 - d2) > itol * interval:
+            out[k, F_VALID] = 0.0
+            continue
+        support = out[k, F_LENGTH] + ramp
+        if support > interval - min_gap:
+            out[k, F_VALID] = 0.0
+            continue
+        hp = out[k - 1, F_HEIGHT]
+        hn = out[k + 1, F_HEIGHT]
+        h0 = out[k, F_HEIGHT]
+        if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
+            out[k, F_VALID] = 0.0
+    return ns
+
+
+@nb.njit(cache=True, parallel=True)
+def detect_bands(img, weights, stride, win, scale, params, bands, counts):
+    """Detect bands on every ``stride``-th row.
+
+    Parameters
+    ----------
+    img : (H, W, 3) uint8/uint16/float array
+    weights : (3,) float64, channel unmixing weights for this pattern
+    stride : int
+    win : int, window of the sliding mid-level (about 2 line intervals)
+    scale : float, full-scale value of the image (255, 65535)
+    params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, vertical_half
+    bands : (rows, max_bands, N_FIELDS) float64 output
+    counts : (rows,) int64 output
+    """
+    h, w = img.shape[0], img.shape[1]
+    rows = counts.shape[0]
+    vhalf = int(params[4])
+    for i in nb.prange(rows):
+        y = i * stride
+        x = np.empty(w)
+        thr = np.empty(w)
+        _row_signal(img, y, weights, vhalf, x)
+        _sliding_mid(x, win, thr)
+        counts[i] = _bands_in_row(
+            x, thr, params[0] * scale, params[2], params[3], params[1], bands[i]
+        )
+
+
+@nb.njit(cache=True, parallel=True)
+def rasterise(bands, counts, stride, gw, reach, fields, maps):
+    """Interpolate band fields along each row onto the grid columns.
+
+    ``maps[f]`` receives field ``fields[f]``.  Values are interpolated linearly
+    between neighbouring valid bands at most 1.6 intervals apart and held for
+    ``reach`` intervals beyond the outermost band of a run; elsewhere NaN.
+    """
+    rows = counts.shape[0]
+    nf = fields.shape[0]
+    for i in nb.prange(rows):
+        for f in range(nf):
+            for j in range(gw):
+                maps[f, i, j] = np.nan
+        prev = -1
+        n = counts[i]
+        for k in range(n + 1):
+            cur = -1
+            if k < n and bands[i, k, F_VALID] > 0:
+                cur = k
+            if k < n and cur < 0:
+                continue
+            if prev >= 0 and cur >= 0:
+                c0 = bands[i, prev, F_CENTRE]
+                c1 = bands[i, cur, F_CENTRE]
+                if c1 - c0 <= 1.6 * max(bands[i, prev, F_INTERVAL], bands[i, cur, F_INTERVAL]):
+                    j0 = int(np.ceil(c0 / stride))
+                    j1 = int(np.floor(c1 / stride))
+                    for j in range(max(j0, 0), min(j1, gw - 1) + 1):
+                        t = (j * stride - c0) / (c1 - c0)
+                        for f in range(nf):
+                            v0 = bands[i, prev, fields[f]]
+                            maps[f, i, j] = v0 + t * (bands[i, cur, fields[f]] - v0)
+                    prev = cur
+                    continue
+            # a run ends at prev and/or starts at cur: hold values for `reach` intervals
+            for e in (prev, cur):
+                if e < 0:
+                    continue
+                c = bands[i, e, F_CENTRE]
+                b = bands[i, e, F_INTERVAL]
+                lo = int(np.ceil((c - reach * b) / stride))
+                hi = int(np.floor((c + reach * b) / stride))
+                for j in range(max(lo, 0), min(hi, gw - 1) + 1):
+                    if np.isnan(maps[0, i, j]):
+                        for f in range(nf):
+                            maps[f, i, j] = bands[i, e, fields[f]]
+            prev = cur if cur >= 0 else -1
+
+
+def estimate_leak(img: np.ndarray, target: int, source: int, step: int = 8) -> float:
+    """Fraction of ``source``-channel light that leaks into the ``target`` camera channel.
+
+    Where the target pattern is dark, the target channel holds only ambient
+    light and the leak of the other pattern; the lower envelope of target
+    against source therefore has the leak as its slope.
+    """
+    t = img[::step, ::step, target].astype(np.float32).ravel()
+    s = img[::step, ::step, source].astype(np.float32).ravel()
+    hi = np.percentile(s, 99.5)
+    lo = np.percentile(s, 5)
+    if hi - lo < 8 * (1 if img.dtype == np.uint8 else 257):
+        return 0.0
+    edges = np.linspace(lo, hi, 13)
+    idx = np.digitize(s, edges) - 1
+    xs, ys = [], []
+    for b in range(12):
+        sel = t[idx == b]
+        if sel.size >= 30:
+            xs.append(0.5 * (edges[b] + edges[b + 1]))
+            ys.append(np.percentile(sel, 3))
+    if len(xs) < 4:
+        return 0.0
+    slope = np.polyfit(xs, ys, 1)[0]
+    return float(np.clip(slope, 0.0, 0.3))

@@ -1,0 +1,88 @@
+"""``lightflow project``: show each projector's line pattern on its screen."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+
+from lightflow.app.errors import ConfigError
+
+HELP = "show each projector's pattern fullscreen on its screen until Esc or Ctrl-C"
+
+DESCRIPTION = """\
+Show each projector's line pattern, 1:1 and unscaled, in a borderless
+fullscreen window on the screen (X RandR output) that drives that projector.
+A single projector shows both of its patterns in one image.
+
+The window is placed exactly on the screen and its real position is checked;
+a screen whose size differs from the projector's resolution is refused unless
+--allow-size-mismatch is given (the image is then drawn at the top-left, black
+elsewhere).  Runs until Ctrl-C, Esc in a window, or a window is closed."""
+
+EPILOG = """\
+screens are numbered from 0 in the order `lightflow devices` lists them;
+names are RandR output names such as HDMI-1.  Example:
+  lightflow project rig.json --screens 1,2
+  lightflow project rig.json --screens HDMI-1,DP-2 --display :0"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "project",
+        help=HELP,
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("rig", metavar="RIG", help="rig file (rig.json) whose patterns are shown")
+    p.add_argument(
+        "--screens",
+        required=True,
+        metavar="S1[,S2]",
+        help="comma-separated screen index or name for each projector, in the rig's "
+        "projector order",
+    )
+    p.add_argument("--display", metavar=":N", help="X display (default: $DISPLAY)")
+    p.add_argument(
+        "--allow-size-mismatch",
+        action="store_true",
+        help="accept a screen larger than the projector image (drawn 1:1 at the top-left)",
+    )
+    p.set_defaults(func=run)
+
+
+def parse_screens(text: str, projector_names: list[str]) -> list[int | str]:
+    """Split ``--screens`` into one selector per projector (ints for digit strings)."""
+    parts = [s.strip() for s in text.split(",")]
+    if any(not s for s in parts) or len(parts) != len(projector_names):
+        raise ConfigError(
+            f"--screens: expected {len(projector_names)} comma-separated screen(s) for "
+            f"projector(s) {', '.join(projector_names)}, got {text!r}"
+        )
+    return [int(s) if s.isdigit() else s for s in parts]
+
+
+def run(args: argparse.Namespace) -> int:
+    from lightflow.app.patterns import pattern_image
+    from lightflow.app.rig import load_rig
+    from lightflow.drivers.projector import ProjectorWindows
+
+    rig = load_rig(args.rig)
+    names = [p.name for p in rig.projectors]
+    selectors = parse_screens(args.screens, names)
+    out = ProjectorWindows(
+        [(p.name, s, pattern_image(p)) for p, s in zip(rig.projectors, selectors, strict=True)],
+        display=args.display,
+        allow_size_mismatch=args.allow_size_mismatch,
+    )
+    stop = threading.Event()
+    with out:
+        for name, screen in out.placements:
+            print(f"projector {name} -> {screen.describe()}")
+        print("showing; press Esc in a window or Ctrl-C here to stop", flush=True)
+        try:
+            out.run(stop)
+        except KeyboardInterrupt:
+            print("stopped", file=sys.stderr)
+    return 0

@@ -1,0 +1,237 @@
+"""The per-frame depth pipeline: unmix, bands, flows, ratio, smoothing, LUT, depth.
+
+:class:`DepthPipeline` is pure computation on one thread (no hardware, no
+Rerun); :mod:`lightflow.app.runner` puts it between a camera and the sinks.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields
+
+import cv2
+import numpy as np
+
+from . import bands as bd
+from .depth_model import DepthLUT, DepthRange, load_or_build_lut, lookup_depth
+from .errors import ConfigError
+from .flow import FlowModel, FlowParams, smooth_log_ratio
+from .results import BandSet, FrameResult
+from .rig import CHANNEL_INDEX, Rig
+
+MAX_BANDS_PER_ROW = 256
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Options of the depth pipeline.
+
+    Attributes
+    ----------
+    stride : int
+        Analysis grid stride: bands are measured on every ``stride``-th row and
+        flows/depth computed on every ``stride``-th column, then depth is
+        interpolated back to full resolution.
+    depth_range : DepthRange
+    flow : FlowParams
+    bands : BandParams
+    crosstalk : str or float
+        ``auto`` estimates the colour leak from each frame; a number fixes it.
+    """
+
+    stride: int = 2
+    depth_range: DepthRange = field(default_factory=DepthRange)
+    flow: FlowParams = field(default_factory=FlowParams)
+    bands: bd.BandParams = field(default_factory=bd.BandParams)
+    crosstalk: str | float = "auto"
+
+    def __post_init__(self):
+        if self.stride not in (1, 2, 4):
+            raise ConfigError(f"stride: expected 1, 2 or 4, got {self.stride}")
+
+    @staticmethod
+    def from_dict(d: dict, source: str = "pipeline options") -> PipelineConfig:
+        """Build from a flat dict, rejecting unknown keys."""
+        known = {f.name for f in fields(PipelineConfig)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(f"{source}: unknown option {unknown[0]!r}")
+        return PipelineConfig(**d)
+
+
+class DepthPipeline:
+    """Turns camera frames into depth for one rig.
+
+    Parameters
+    ----------
+    rig : Rig
+    config : PipelineConfig
+    lut : DepthLUT, optional
+        Precomputed LUT; loaded from the cache or built when omitted.
+    progress : callable, optional
+        ``progress(done, total)`` while the LUT is built.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        config: PipelineConfig | None = None,
+        lut: DepthLUT | None = None,
+        progress=None,
+    ):
+        self.rig = rig
+        self.config = config or PipelineConfig()
+        cfg = self.config
+        self.lut = lut or load_or_build_lut(rig, cfg.stride, cfg.depth_range, progress)
+        if self.lut.stride != cfg.stride:
+            raise ConfigError(f"LUT stride {self.lut.stride} differs from stride {cfg.stride}")
+        self.flow_model = FlowModel(rig)
+        self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
+        cam = rig.camera
+        self.grid_shape = self.lut.h0.shape
+        self._leak = [0.0, 0.0]
+        self._window: list[int | None] = [None, None]
+        b = cfg.bands
+        self._band_params = np.array(
+            [b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px, b.min_gap_px,
+             b.vertical_half], dtype=np.float64,
+        )  # fmt: skip
+        s = cfg.stride
+        # dst(x, y) = src(x / s, y / s): grid sample i sits on camera pixel i * s
+        self._upsample = np.array([[1.0 / s, 0, 0], [0, 1.0 / s, 0]])
+        self._full_size = (cam.width, cam.height)
+
+    # ------------------------------------------------------------------ stages
+
+    def _weights(self, image: np.ndarray) -> list[np.ndarray]:
+        """Per pattern, RGB weights that isolate its channel (crosstalk removed)."""
+        a, b = self.channels
+        cfg = self.config
+        if cfg.crosstalk == "auto":
+            # smooth the estimate over frames: it is a property of the rig, not of a frame
+            leak = [bd.estimate_leak(image, a, b), bd.estimate_leak(image, b, a)]
+            for i in range(2):
+                self._leak[i] = leak[i] if self._frames == 0 else 0.8 * self._leak[i] + 0.2 * leak[i]
+        else:
+            self._leak = [float(cfg.crosstalk)] * 2
+        out = []
+        for own, other, leak in ((a, b, self._leak[0]), (b, a, self._leak[1])):
+            w = np.zeros(3)
+            w[own] = 1.0
+            w[other] = -leak
+            out.append(w)
+        return out
+
+    def _window_for(self, i: int, image: np.ndarray, weights: np.ndarray) -> int:
+        """Sliding window of the band detector: about two line intervals, learnt per channel."""
+        if self._window[i] is None:
+            # coarse pass on a few rows with a wide window to learn the interval
+            win = max(31, image.shape[1] // 12) | 1
+            self._window[i] = self._learn_window(image, weights, win) or win
+        return self._window[i]
+
+    def _learn_window(self, image, weights, win) -> int | None:
+        stride = max(8, image.shape[0] // 48)
+        rows = image.shape[0] // stride
+        bands = np.empty((rows, MAX_BANDS_PER_ROW, bd.N_FIELDS))
+        counts = np.empty(rows, np.int64)
+        bd.detect_bands(image, weights, stride, win, self._scale(image), self._band_params,
+                        bands, counts)  # fmt: skip
+        iv = np.concatenate([bands[r, : counts[r], bd.F_INTERVAL] for r in range(rows)])
+        iv = iv[np.isfinite(iv)]
+        if iv.size < 10:
+            return None
+        return int(2 * np.median(iv)) | 1
+
+    @staticmethod
+    def _scale(image: np.ndarray) -> float:
+        return 65535.0 if image.dtype == np.uint16 else 255.0
+
+    # ------------------------------------------------------------------ public
+
+    _frames = 0
+
+    def process(self, frame) -> FrameResult:
+        """Depth for one frame.  Never raises on image content: bad pixels are NaN."""
+        cfg = self.config
+        image = frame.image
+        cam = self.rig.camera
+        if image.shape[:2] != (cam.height, cam.width):
+            from .errors import FrameError
+
+            raise FrameError(
+                f"frame {frame.stem}: {image.shape[1]}x{image.shape[0]}, expected "
+                f"{cam.width}x{cam.height} (camera.width x camera.height)"
+            )
+        t0 = time.perf_counter()
+        timings = {}
+        weights = self._weights(image)
+        t1 = time.perf_counter()
+        timings["unmix"] = (t1 - t0) * 1e3
+        gh, gw = self.grid_shape
+        maps, band_sets = [], []
+        fields_ = np.array(bd.GRID_FIELDS, dtype=np.int64)
+        for i, w in enumerate(weights):
+            win = self._window_for(i, image, w)
+            bands = np.empty((gh, MAX_BANDS_PER_ROW, bd.N_FIELDS))
+            counts = np.empty(gh, np.int64)
+            bd.detect_bands(image, w, cfg.stride, win, self._scale(image), self._band_params,
+                            bands, counts)  # fmt: skip
+            grid = np.empty((len(fields_), gh, gw), np.float64)
+            bd.rasterise(bands, counts, cfg.stride, gw, 0.5, fields_, grid)
+            maps.append(grid)
+            band_sets.append((bands, counts))
+        t2 = time.perf_counter()
+        timings["bands"] = (t2 - t1) * 1e3
+        raw, flows, self.blur_px = self.flow_model.combine(maps, cfg.flow)
+        t3 = time.perf_counter()
+        timings["flow"] = (t3 - t2) * 1e3
+        log_ratio = smooth_log_ratio(
+            raw, cfg.flow.smoothing_px / cfg.stride, cfg.flow.outlier_sigmas
+        )
+        t4 = time.perf_counter()
+        timings["smooth"] = (t4 - t3) * 1e3
+        depth_grid = lookup_depth(self.lut, log_ratio)
+        if cfg.stride == 1:
+            depth = depth_grid
+        else:
+            depth = cv2.warpAffine(
+                depth_grid, self._upsample, self._full_size,
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
+            )  # fmt: skip
+        t5 = time.perf_counter()
+        timings["depth"] = (t5 - t4) * 1e3
+        timings["total"] = (t5 - t0) * 1e3
+        self._frames += 1
+        result_bands = [
+            _band_set(ch, bands, counts, cfg.stride)
+            for (_, ch), (bands, counts) in zip(
+                [(p, pat.channel) for p, pat in self.rig.patterns], band_sets, strict=True
+            )
+        ]
+        return FrameResult(
+            frame=frame,
+            depth=depth,
+            flows_grid=flows,
+            log_ratio_grid=log_ratio,
+            bands=result_bands,
+            stride=cfg.stride,
+            timings_ms=timings,
+            coverage=float(np.count_nonzero(np.isfinite(depth_grid)) / depth_grid.size),
+        )
+
+
+def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, stride: int) -> BandSet:
+    rows = np.repeat(np.arange(len(counts)) * stride, counts).astype(np.float32)
+    sel = np.concatenate([bands[r, : counts[r]] for r in range(len(counts))]) if len(
+        counts
+    ) else np.empty((0, bd.N_FIELDS))
+    ok = np.isfinite(sel[:, bd.F_START])
+    return BandSet(
+        channel,
+        rows[ok],
+        sel[ok, bd.F_START].astype(np.float32),
+        sel[ok, bd.F_END].astype(np.float32),
+        sel[ok, bd.F_VALID] > 0,
+    )

@@ -1,0 +1,353 @@
+"""Physical renderer for the synthetic camera (numba).
+
+For every camera pixel it integrates, over the exposure, the light of the
+projected line patterns on the moving scene: ray-scene intersection, shadow
+rays to each projector, projection into each projector with the full OpenCV
+lens model, line boxes blurred by projector defocus, Lambertian shading with
+inverse-square fall-off, ambient light and colour crosstalk.  Time and pixel
+area are integrated together with stratified samples.  Noise and 8-bit
+quantisation are applied by :func:`expose`.
+
+Scene primitives are rows of a float64 array (see ``PRIM_*`` and the builders
+in :mod:`lightflow.drivers.scenes`) so that the kernel stays one compiled loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+# primitive types
+PRIM_RECT = 0  # moving rectangle (board)
+PRIM_SPHERE = 1  # moving sphere (ball)
+PRIM_BLADE = 2  # rotating pitched fan blade
+PRIM_PLANE = 3  # static infinite plane (wall)
+PRIM_DISK = 4  # static disk (fan hub)
+PRIM_SIZE = 32
+
+# row layout (common): 0 type, 1 object id, 2 albedo, 3 texture (0 none, 1 newspaper)
+# RECT:   4-6 centre, 7-9 velocity, 10-12 e1, 13-15 e2, 16 half a, 17 half b
+# SPHERE: 4-6 centre, 7-9 velocity, 10-12 acceleration, 13 radius
+# BLADE:  4-6 hub, 7-9 axis, 10-12 a1 (angle 0 direction), 13 omega, 14 phase,
+#         15 r0, 16 r1, 17 half width at r0, 18 half width at r1, 19 pitch (rad)
+# PLANE:  4-6 point, 7-9 normal
+# DISK:   4-6 centre, 7-9 normal, 10 radius
+
+EPS = 1e-6
+
+
+@nb.njit(cache=True, inline="always")
+def _dot(a0, a1, a2, b0, b1, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@nb.njit(cache=True)
+def _sample_texture(tex, s, t):
+    # s, t in [0, 1); bilinear
+    h, w = tex.shape
+    x = s * (w - 1)
+    y = t * (h - 1)
+    if x < 0 or y < 0 or x > w - 1 or y > h - 1:
+        return 1.0
+    x0 = min(int(x), w - 2)
+    y0 = min(int(y), h - 2)
+    fx = x - x0
+    fy = y - y0
+    return (
+        tex[y0, x0] * (1 - fx) * (1 - fy)
+        + tex[y0, x0 + 1] * fx * (1 - fy)
+        + tex[y0 + 1, x0] * (1 - fx) * fy
+        + tex[y0 + 1, x0 + 1] * fx * fy
+    )
+
+
+@nb.njit(cache=True)
+def _intersect(p, ox, oy, oz, dx, dy, dz, t, tex):
+    """Ray distance, normal, albedo of primitive row ``p`` at time ``t`` (inf if missed)."""
+    kind = int(p[0])
+    inf = np.inf
+    if kind == PRIM_RECT or kind == PRIM_PLANE or kind == PRIM_DISK:
+        if kind == PRIM_RECT:
+            cx = p[4] + p[7] * t
+            cy = p[5] + p[8] * t
+            cz = p[6] + p[9] * t
+            nx = p[11] * p[15] - p[12] * p[14]
+            ny = p[12] * p[13] - p[10] * p[15]
+            nz = p[10] * p[14] - p[11] * p[13]
+        else:
+            cx, cy, cz = p[4], p[5], p[6]
+            nx, ny, nz = p[7], p[8], p[9]
+        den = _dot(dx, dy, dz, nx, ny, nz)
+        if abs(den) < 1e-12:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        s = _dot(cx - ox, cy - oy, cz - oz, nx, ny, nz) / den
+        if s <= EPS:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        hx = ox + s * dx - cx
+        hy = oy + s * dy - cy
+        hz = oz + s * dz - cz
+        alb = p[2]
+        if kind == PRIM_RECT:
+            a = _dot(hx, hy, hz, p[10], p[11], p[12])
+            b = _dot(hx, hy, hz, p[13], p[14], p[15])
+            if abs(a) > p[16] or abs(b) > p[17]:
+                return inf, 0.0, 0.0, 0.0, 0.0
+            if p[3] > 0:
+                alb *= _sample_texture(tex, 0.5 + 0.5 * a / p[16], 0.5 + 0.5 * b / p[17])
+        elif kind == PRIM_DISK:
+            if hx * hx + hy * hy + hz * hz > p[10] * p[10]:
+                return inf, 0.0, 0.0, 0.0, 0.0
+        return s, nx, ny, nz, alb
+    if kind == PRIM_SPHERE:
+        cx = p[4] + p[7] * t + 0.5 * p[10] * t * t
+        cy = p[5] + p[8] * t + 0.5 * p[11] * t * t
+        cz = p[6] + p[9] * t + 0.5 * p[12] * t * t
+        r = p[13]
+        lx, ly, lz = ox - cx, oy - cy, oz - cz
+        b = _dot(lx, ly, lz, dx, dy, dz)
+        c = _dot(lx, ly, lz, lx, ly, lz) - r * r
+        disc = b * b - c
+        if disc < 0:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        sq = math.sqrt(disc)
+        s = -b - sq
+        if s <= EPS:
+            s = -b + sq
+            if s <= EPS:
+                return inf, 0.0, 0.0, 0.0, 0.0
+        hx = ox + s * dx - cx
+        hy = oy + s * dy - cy
+        hz = oz + s * dz - cz
+        alb = p[2]
+        if p[3] > 0:  # a few painted meridians so a ball is not featureless
+            ang = math.atan2(hy, hx)
+            if math.cos(6 * ang) > 0.97:
+                alb *= 0.5
+        return s, hx / r, hy / r, hz / r, alb
+    if kind == PRIM_BLADE:
+        ax, ay, az = p[7], p[8], p[9]
+        th = p[14] + p[13] * t
+        # e_r = cos th * a1 + sin th * (axis x a1)
+        bx = ay * p[12] - az * p[11]
+        by = az * p[10] - ax * p[12]
+        bz = ax * p[11] - ay * p[10]
+        c = math.cos(th)
+        sn = math.sin(th)
+        rx = c * p[10] + sn * bx
+        ry = c * p[11] + sn * by
+        rz = c * p[12] + sn * bz
+        # tangential = axis x e_r
+        tx = ay * rz - az * ry
+        ty = az * rx - ax * rz
+        tz = ax * ry - ay * rx
+        cp = math.cos(p[19])
+        sp = math.sin(p[19])
+        wx = cp * tx + sp * ax
+        wy = cp * ty + sp * ay
+        wz = cp * tz + sp * az
+        nx = ry * wz - rz * wy
+        ny = rz * wx - rx * wz
+        nz = rx * wy - ry * wx
+        den = _dot(dx, dy, dz, nx, ny, nz)
+        if abs(den) < 1e-12:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        s = _dot(p[4] - ox, p[5] - oy, p[6] - oz, nx, ny, nz) / den
+        if s <= EPS:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        hx = ox + s * dx - p[4]
+        hy = oy + s * dy - p[5]
+        hz = oz + s * dz - p[6]
+        rr = _dot(hx, hy, hz, rx, ry, rz)
+        ww = _dot(hx, hy, hz, wx, wy, wz)
+        if rr < p[15] or rr > p[16]:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        hw = p[17] + (p[18] - p[17]) * (rr - p[15]) / (p[16] - p[15])
+        if abs(ww) > hw:
+            return inf, 0.0, 0.0, 0.0, 0.0
+        return s, nx, ny, nz, p[2]
+    return inf, 0.0, 0.0, 0.0, 0.0
+
+
+@nb.njit(cache=True)
+def _trace(prims, ox, oy, oz, dx, dy, dz, t, tex, tmax):
+    best = tmax
+    bi = -1
+    bnx = bny = bnz = balb = 0.0
+    for i in range(prims.shape[0]):
+        s, nx, ny, nz, alb = _intersect(prims[i], ox, oy, oz, dx, dy, dz, t, tex)
+        if s < best:
+            best, bi, bnx, bny, bnz, balb = s, i, nx, ny, nz, alb
+    return best, bi, bnx, bny, bnz, balb
+
+
+@nb.njit(cache=True)
+def _project_u(pp, X, Y, Z):
+    """Projector pixel (u, v) of a camera-frame point; pp as depth_model._projector_params."""
+    px = pp[0] * X + pp[1] * Y + pp[2] * Z + pp[9]
+    py = pp[3] * X + pp[4] * Y + pp[5] * Z + pp[10]
+    pz = pp[6] * X + pp[7] * Y + pp[8] * Z + pp[11]
+    if pz <= 1e-9:
+        return np.nan, np.nan
+    xn = px / pz
+    yn = py / pz
+    k1, k2, p1, p2, k3, k4, k5, k6 = pp[17], pp[18], pp[19], pp[20], pp[21], pp[22], pp[23], pp[24]
+    r2 = xn * xn + yn * yn
+    rad = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = xn * rad + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn) + pp[25] * r2 + pp[26] * r2 * r2
+    yd = yn * rad + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn + pp[27] * r2 + pp[28] * r2 * r2
+    return pp[12] * xd + pp[13] * yd + pp[14], pp[15] * yd + pp[16]
+
+
+@nb.njit(cache=True)
+def _line_light(foot, u, sigma):
+    """Light of a line set (footprints ``(n, 2)``) at column ``u`` with Gaussian defocus."""
+    n = foot.shape[0]
+    # binary search for the first footprint whose end reaches u - 4 sigma
+    lo = 0
+    hi = n
+    reach = u - 4.0 * sigma - 1.0
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if foot[mid, 1] < reach:
+            lo = mid + 1
+        else:
+            hi = mid
+    total = 0.0
+    k = 1.0 / (math.sqrt(2.0) * sigma)
+    for i in range(lo, n):
+        if foot[i, 0] > u + 4.0 * sigma + 1.0:
+            break
+        total += 0.5 * (math.erf((u - foot[i, 0]) * k) - math.erf((u - foot[i, 1]) * k))
+    return total
+
+
+@nb.njit(cache=True, parallel=True)
+def render_exposure(
+    rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
+    t0, exposure, samples, offsets, out,
+):  # fmt: skip
+    """Integrate radiance over the exposure for every pixel into ``out`` (h, w, 3).
+
+    ``rays``: (h, w, 3) camera rays (z = 1) at pixel centres; ``ray_dx``/``ray_dy``
+    their change per pixel (for sub-pixel samples).  ``offsets``: (samples, 3)
+    stratified (time fraction, dx, dy).  ``pat_foot``: (n_pat, max_lines, 2)
+    line footprints padded, ``pat_nfoot`` the counts.
+    """
+    h, w = rays.shape[:2]
+    n_pat = pat_proj.shape[0]
+    n_proj = projs.shape[0]
+    for i in nb.prange(h):
+        foot_buf = pat_foot  # noqa: F841 (keeps numba from copying)
+        for j in range(w):
+            acc0 = 0.0
+            acc1 = 0.0
+            acc2 = 0.0
+            for k in range(samples):
+                t = t0 + exposure * offsets[k, 0]
+                ox = offsets[k, 1]
+                oy = offsets[k, 2]
+                dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
+                dy = rays[i, j, 1] + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
+                dz = 1.0
+                s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, dz, t, tex, np.inf)
+                if pi < 0:
+                    continue
+                X = s * dx
+                Y = s * dy
+                Z = s * dz
+                # face the normal towards the camera
+                if nx * X + ny * Y + nz * Z > 0:
+                    nx, ny, nz = -nx, -ny, -nz
+                acc0 += alb * ambient[0]
+                acc1 += alb * ambient[1]
+                acc2 += alb * ambient[2]
+                for q in range(n_proj):
+                    lx = proj_centre[q, 0] - X
+                    ly = proj_centre[q, 1] - Y
+                    lz = proj_centre[q, 2] - Z
+                    dist2 = lx * lx + ly * ly + lz * lz
+                    dist = math.sqrt(dist2)
+                    cosi = (nx * lx + ny * ly + nz * lz) / dist
+                    if cosi <= 0:
+                        continue
+                    u, v = _project_u(projs[q], X, Y, Z)
+                    if not (u >= -0.5 and u <= proj_size[q, 0] - 0.5):
+                        continue
+                    if not (v >= -0.5 and v <= proj_size[q, 1] - 0.5):
+                        continue
+                    ss, sp, _a, _b, _c, _d = _trace(
+                        prims, X, Y, Z, lx / dist, ly / dist, lz / dist, t, tex, dist
+                    )
+                    if sp >= 0 and ss > 1e-5:
+                        continue  # shadowed
+                    irr = alb * proj_power[q] * cosi / dist2
+                    for m in range(n_pat):
+                        if pat_proj[m] != q:
+                            continue
+                        light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * irr
+                        c = pat_channel[m]
+                        acc0 += crosstalk[0, c] * light
+                        acc1 += crosstalk[1, c] * light
+                        acc2 += crosstalk[2, c] * light
+            out[i, j, 0] = acc0 / samples
+            out[i, j, 1] = acc1 / samples
+            out[i, j, 2] = acc2 / samples
+
+
+@nb.njit(cache=True, parallel=True)
+def render_truth(rays, prims, tex, projs, proj_centre, proj_size, t, depth, obj, lit):
+    """Depth z, object id and per-projector lit bits at the pixel centres at time ``t``."""
+    h, w = rays.shape[:2]
+    n_proj = projs.shape[0]
+    for i in nb.prange(h):
+        for j in range(w):
+            dx = rays[i, j, 0]
+            dy = rays[i, j, 1]
+            s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, 1.0, t, tex, np.inf)
+            if pi < 0:
+                depth[i, j] = np.nan
+                obj[i, j] = 0
+                lit[i, j] = 0
+                continue
+            X = s * dx
+            Y = s * dy
+            Z = s
+            depth[i, j] = Z
+            obj[i, j] = int(prims[pi, 1])
+            if nx * X + ny * Y + nz * Z > 0:
+                nx, ny, nz = -nx, -ny, -nz
+            bits = 0
+            for q in range(n_proj):
+                lx = proj_centre[q, 0] - X
+                ly = proj_centre[q, 1] - Y
+                lz = proj_centre[q, 2] - Z
+                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+                if (nx * lx + ny * ly + nz * lz) <= 0:
+                    continue
+                u, v = _project_u(projs[q], X, Y, Z)
+                if not (u >= -0.5 and u <= proj_size[q, 0] - 0.5):
+                    continue
+                if not (v >= -0.5 and v <= proj_size[q, 1] - 0.5):
+                    continue
+                ss, sp, _a, _b, _c, _d = _trace(
+                    prims, X, Y, Z, lx / dist, ly / dist, lz / dist, t, tex, dist
+                )
+                if sp >= 0 and ss > 1e-5:
+                    continue
+                bits |= 1 << q
+            lit[i, j] = bits
+
+
+def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
+    """``(samples, 3)`` jittered (time fraction, dx, dy) covering exposure and pixel area."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(samples)
+    t = (k + rng.uniform(0.2, 0.8, samples)) / samples
+    # R2 low-discrepancy sequence for the pixel footprint, decorrelated from time
+    g = 1.32471795724474602596
+    ox = ((0.5 + k / g) % 1.0) - 0.5
+    oy = ((0.5 + k / (g * g)) % 1.0) - 0.5
+    return np.stack([t, ox, oy], axis=1)

@@ -1,0 +1,218 @@
+"""Built-in moving scenes for the synthetic camera.
+
+Each scene is a list of primitive rows for :mod:`lightflow.drivers.render`
+plus a nominal exposure at which its bands are about 10-15 px long with the
+example rigs.  Object id 1 is static background; ids >= 2 move.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lightflow.app.errors import ConfigError
+
+from .render import PRIM_BLADE, PRIM_DISK, PRIM_PLANE, PRIM_RECT, PRIM_SIZE, PRIM_SPHERE
+
+GRAVITY = np.array([0.0, 9.81, 0.0])  # camera y points down
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A moving scene at time ``t`` (seconds) given by primitive rows.
+
+    Attributes
+    ----------
+    name : str
+    description : str
+    exposure_s : float
+        Exposure at which the bands are about 10-15 px long (example rigs).
+    planar : bool
+        Whether the moving object is a plane (plane-fit RMSE applies).
+    """
+
+    name: str
+    description: str
+    exposure_s: float
+    planar: bool
+    period_s: float
+
+    def primitives(self, t: float) -> np.ndarray:
+        """Primitive rows valid for times near ``t`` (motion inside is analytic)."""
+        return _BUILDERS[self.name](t)
+
+
+def _row(kind: int, obj: int, albedo: float, texture: int = 0, **fields) -> np.ndarray:
+    r = np.zeros(PRIM_SIZE)
+    r[0], r[1], r[2], r[3] = kind, obj, albedo, texture
+    for start, values in fields.values():
+        r[start : start + len(values)] = values
+    return r
+
+
+def _triangle(t: float, lo: float, hi: float, speed: float):
+    """Position and velocity of a point bouncing between lo and hi at constant speed."""
+    span = hi - lo
+    phase = (t * speed) % (2 * span)
+    if phase < span:
+        return lo + phase, speed
+    return hi - (phase - span), -speed
+
+
+def _rect(obj, albedo, texture, centre, velocity, e1, e2, half_a, half_b):
+    return _row(
+        PRIM_RECT, obj, albedo, texture,
+        c=(4, centre), v=(7, velocity), e1=(10, e1), e2=(13, e2), s=(16, (half_a, half_b)),
+    )  # fmt: skip
+
+
+BOARD_SPEED = 0.6  # m/s along the optical axis
+
+
+def _board(t, texture=0):
+    # the row describes motion as centre(t0) + v (t - t0); give the state at t and t0 = t
+    z, vz = _triangle(t, 0.6, 0.9, BOARD_SPEED)
+    return np.stack([
+        _rect(2, 0.85, texture, (0.0, 0.0, z - vz * t), (0, 0, vz), (1, 0, 0), (0, 1, 0), 0.34, 0.26)
+    ])  # fmt: skip
+
+
+def _tilted(t):
+    ang_y, ang_x = math.radians(30), math.radians(12)
+    e1 = np.array([math.cos(ang_y), 0, -math.sin(ang_y)])
+    e2 = np.array([0, math.cos(ang_x), math.sin(ang_x)])
+    e2 -= e1 * (e1 @ e2)
+    e2 /= np.linalg.norm(e2)
+    s, vs = _triangle(t, -1.0, 1.0, 1.0 / 0.5)
+    direction = np.array([0.12, 0.0, 0.15])  # diagonal: sideways and in depth
+    centre = np.array([0.0, 0.0, 0.75]) + s * direction
+    vel = vs * direction
+    return np.stack([_rect(2, 0.85, 0, centre - vel * t, vel, e1, e2, 0.28, 0.2)])
+
+
+def _ball(centre0, v0, t, obj, radius=0.09):
+    # thrown: ballistic from centre0 at time 0 with velocity v0
+    acc = GRAVITY
+    return _row(
+        PRIM_SPHERE, obj, 0.8, 1,
+        c=(4, centre0), v=(7, v0), a=(10, acc), r=(13, (radius,)),
+    )  # fmt: skip
+
+
+THROW_PERIOD = 0.5
+
+
+def _thrown(t):
+    t_local = t % THROW_PERIOD
+    t0 = t - t_local  # restart the throw every period
+    c0 = np.array([-0.12, -0.06, 0.62])
+    v0 = np.array([0.45, -0.3, 0.55])
+    # express as state relative to absolute time: centre(t) = c0 + v0 (t - t0) + g (t - t0)^2 / 2
+    c_abs = c0 - v0 * t0 + 0.5 * GRAVITY * t0 * t0
+    v_abs = v0 - GRAVITY * t0
+    return np.stack([_ball(c_abs, v_abs, t, 2)])
+
+
+def _two_balls(t):
+    t_local = t % THROW_PERIOD
+    t0 = t - t_local
+    rows = []
+    for obj, c0, v0 in (
+        (2, np.array([-0.14, 0.0, 0.62]), np.array([0.2, -0.45, 0.5])),
+        (3, np.array([0.12, 0.02, 0.9]), np.array([-0.15, -0.4, -0.45])),
+    ):
+        rows.append(_ball(c0 - v0 * t0 + 0.5 * GRAVITY * t0 * t0, v0 - GRAVITY * t0, t, obj, 0.08))
+    return np.stack(rows)
+
+
+FAN_REV_PER_S = 10.0
+
+
+def _fan(t):
+    hub = np.array([0.0, 0.0, 0.72])
+    axis = np.array([0.0, 0.0, -1.0])
+    a1 = np.array([1.0, 0.0, 0.0])
+    omega = 2 * math.pi * FAN_REV_PER_S
+    rows = [
+        _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.05)), n=(7, (0, 0, -1))),
+        _row(PRIM_DISK, 1, 0.5, 0, c=(4, hub + np.array([0, 0, -0.01])), n=(7, axis), r=(10, (0.045,))),
+    ]  # fmt: skip
+    for b in range(4):
+        rows.append(
+            _row(
+                PRIM_BLADE, 2, 0.8, 0,
+                hub=(4, hub), axis=(7, axis), a1=(10, a1),
+                p=(13, (omega, b * math.pi / 2, 0.05, 0.24, 0.028, 0.05, math.radians(30))),
+            )
+        )  # fmt: skip
+    return np.stack(rows)
+
+
+SCENES: dict[str, Scene] = {
+    s.name: s
+    for s in (
+        Scene("board", "white board moving along the optical axis, 0.6-0.9 m", 0.02, True, 1.0),
+        Scene("textured-board", "printed (newspaper) board moving along the axis", 0.02, True, 1.0),
+        Scene("tilted-board", "board tilted 30 deg moving diagonally", 0.02, True, 1.0),
+        Scene("ball", "a thrown ball", 0.008, False, THROW_PERIOD),
+        Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
+        Scene("two-balls", "two thrown balls", 0.008, False, THROW_PERIOD),
+    )
+}
+
+_BUILDERS = {
+    "board": _board,
+    "textured-board": lambda t: _board(t, texture=1),
+    "tilted-board": _tilted,
+    "ball": _thrown,
+    "fan": _fan,
+    "two-balls": _two_balls,
+}
+
+
+def get_scene(name: str) -> Scene:
+    """Look up a built-in scene by name."""
+    try:
+        return SCENES[name]
+    except KeyError:
+        raise ConfigError(
+            f"scene {name!r}: unknown (expected one of {', '.join(SCENES)})"
+        ) from None
+
+
+def newspaper_texture(seed: int = 7, width: int = 1400, height: int = 1000) -> np.ndarray:
+    """Albedo map of a printed page: columns of text lines, headlines and a photo block."""
+    rng = np.random.default_rng(seed)
+    tex = np.full((height, width), 0.92, dtype=np.float64)
+    ink = 0.12
+    margin = 30
+    n_cols = 4
+    col_w = (width - 2 * margin) // n_cols
+    for c in range(n_cols):
+        x0 = margin + c * col_w + 8
+        x1 = x0 + col_w - 16
+        y = margin
+        while y < height - margin:
+            if rng.random() < 0.06:  # headline
+                hgt = int(min(rng.integers(14, 22), height - margin - y))
+                tex[y : y + hgt, x0 : x0 + rng.integers(col_w // 2, col_w - 16)] = ink
+                y += hgt + 10
+                continue
+            if rng.random() < 0.03:  # photo block with grey levels
+                hgt = int(min(rng.integers(80, 160), height - margin - y))
+                block = rng.uniform(0.2, 0.8, (hgt // 8 + 1, (x1 - x0) // 8 + 1))
+                tex[y : y + hgt, x0:x1] = np.kron(block, np.ones((8, 8)))[:hgt, : x1 - x0]
+                y += hgt + 10
+                continue
+            # a text line: words of glyph-like blobs
+            x = x0
+            while x < x1 - 10:
+                wl = rng.integers(12, 60)
+                wl = min(wl, x1 - x)
+                word = rng.random((6, wl)) < 0.55
+                tex[y : y + 6, x : x + wl][word[: height - y]] = ink
+                x += wl + rng.integers(5, 9)
+            y += 10
+    return tex

@@ -1,0 +1,258 @@
+"""The synthetic camera: renders a built-in moving scene by physical simulation.
+
+It implements :class:`~lightflow.drivers.base.Camera` like any live camera,
+with a settable exposure (so blur-aware auto exposure can be exercised), and
+attaches the ground truth of each frame as ``frame.extras["truth"]``.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from lightflow.app.depth_model import _projector_params
+from lightflow.app.errors import DriverError
+from lightflow.app.geometry import camera_rays
+from lightflow.app.patterns import line_footprints
+from lightflow.app.rig import CHANNEL_INDEX, Rig
+
+from .base import Camera, Frame
+from .render import render_exposure, render_truth, stratified_offsets
+from .scenes import Scene, get_scene, newspaper_texture
+
+#: a static white surface facing the projector at this distance reaches WHITE_DN
+REFERENCE_DISTANCE_M = 0.75
+WHITE_DN = 210.0
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Camera sensor and optics of the simulation.
+
+    Attributes
+    ----------
+    full_well_dn : float
+        Electrons per DN times the DN scale: shot noise variance is ``signal / gain``.
+    electrons_per_dn : float
+    read_noise_dn : float
+    lens_blur_px : float
+        Gaussian sigma of the camera lens blur in pixels.
+    projector_defocus_px : float
+        Gaussian sigma of the projector defocus in projector pixels.
+    ambient_dn : float
+        Ambient light reaching a white surface, per channel.
+    crosstalk : tuple
+        3x3 camera-channel response to each projector colour (columns: R, G, B light).
+    samples : int
+        Time/area samples per pixel.
+    bit_depth : int
+        8 or 16 bits per channel.
+    """
+
+    electrons_per_dn: float = 40.0
+    read_noise_dn: float = 1.0
+    lens_blur_px: float = 0.6
+    projector_defocus_px: float = 0.6
+    ambient_dn: float = 8.0
+    crosstalk: tuple = ((1.0, 0.03, 0.04), (0.04, 1.0, 0.05), (0.03, 0.05, 1.0))
+    samples: int = 32
+    bit_depth: int = 8
+
+
+@dataclass
+class GroundTruth:
+    """Ground truth at mid-exposure.
+
+    Attributes
+    ----------
+    depth : numpy.ndarray
+        ``(H, W)`` float32 z in metres, NaN where no surface.
+    object_id : numpy.ndarray
+        ``(H, W)`` uint8: 0 nothing, 1 static background, >= 2 moving objects.
+    lit : numpy.ndarray
+        ``(H, W)`` uint8 bit mask: bit q set when projector q lights the point.
+    planar : bool
+        The moving object is a plane.
+    """
+
+    depth: np.ndarray
+    object_id: np.ndarray
+    lit: np.ndarray
+    planar: bool
+
+    def save(self, path) -> None:
+        np.savez_compressed(
+            path, depth=self.depth, object_id=self.object_id, lit=self.lit,
+            planar=np.array(self.planar),
+        )  # fmt: skip
+
+    @staticmethod
+    def load(path) -> GroundTruth:
+        with np.load(path) as d:
+            return GroundTruth(d["depth"], d["object_id"], d["lit"], bool(d["planar"]))
+
+
+class SceneRenderer:
+    """Renders frames of one scene for one rig (pure computation, no threads)."""
+
+    def __init__(self, rig: Rig, scene: Scene, sensor: SensorModel = SensorModel()):
+        self.rig = rig
+        self.scene = scene
+        self.sensor = sensor
+        cam = rig.camera
+        rays = camera_rays(cam)
+        self.rays = np.ascontiguousarray(rays)
+        # per-pixel change of the ray for sub-pixel samples
+        self.ray_dx = np.ascontiguousarray(np.gradient(rays, axis=1))
+        self.ray_dy = np.ascontiguousarray(np.gradient(rays, axis=0))
+        self.texture = newspaper_texture()
+        self.projs = _projector_params(rig)
+        self.proj_centre = np.array([p.centre_in_camera for p in rig.projectors])
+        self.proj_size = np.array([[p.width, p.height] for p in rig.projectors], dtype=np.float64)
+        pats = rig.patterns
+        foots = [line_footprints(pat, proj.width) for proj, pat in pats]
+        n_max = max(len(f) for f in foots)
+        self.pat_foot = np.zeros((len(pats), n_max, 2))
+        for m, f in enumerate(foots):
+            self.pat_foot[m, : len(f)] = f
+        self.pat_nfoot = np.array([len(f) for f in foots], dtype=np.int64)
+        self.pat_proj = np.array(
+            [rig.projectors.index(proj) for proj, _ in pats], dtype=np.int64
+        )
+        self.pat_channel = np.array([CHANNEL_INDEX[pat.channel] for _, pat in pats], np.int64)
+        # each projector is set so that a white surface at the reference distance is WHITE_DN
+        target = np.array([0.0, 0.0, REFERENCE_DISTANCE_M])
+        self.proj_power = np.array(
+            [WHITE_DN * float(np.sum((c - target) ** 2)) for c in self.proj_centre]
+        )
+        self.offsets = stratified_offsets(sensor.samples)
+
+    def radiance(self, t0: float, exposure_s: float) -> np.ndarray:
+        """Noise-free mean image (float DN) of the exposure starting at ``t0``."""
+        cam = self.rig.camera
+        out = np.zeros((cam.height, cam.width, 3))
+        prims = self.scene.primitives(t0 + exposure_s / 2)
+        # brightness scales with exposure relative to the scene's nominal exposure
+        gain = exposure_s / self.scene.exposure_s
+        s = self.sensor
+        render_exposure(
+            self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+            self.proj_centre, self.proj_size, self.proj_power * gain, self.pat_proj,
+            self.pat_channel, self.pat_foot, self.pat_nfoot,
+            np.full(len(self.rig.projectors), s.projector_defocus_px),
+            np.array(s.crosstalk), np.full(3, s.ambient_dn * gain), t0, exposure_s,
+            s.samples, self.offsets, out,
+        )  # fmt: skip
+        if s.lens_blur_px > 0:
+            out = cv2.GaussianBlur(out, (0, 0), s.lens_blur_px)
+        return out
+
+    def expose(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Shot and read noise, quantisation: the sensor's RGB image."""
+        s = self.sensor
+        e = np.maximum(radiance, 0) * s.electrons_per_dn
+        noisy = rng.poisson(e) / s.electrons_per_dn + rng.normal(0, s.read_noise_dn, e.shape)
+        if s.bit_depth == 16:
+            return np.clip(np.rint(noisy * 257.0), 0, 65535).astype(np.uint16)
+        return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+    def truth(self, t: float) -> GroundTruth:
+        cam = self.rig.camera
+        depth = np.empty((cam.height, cam.width))
+        obj = np.empty((cam.height, cam.width), dtype=np.uint8)
+        lit = np.empty((cam.height, cam.width), dtype=np.uint8)
+        render_truth(
+            self.rays, self.scene.primitives(t), self.texture, self.projs, self.proj_centre,
+            self.proj_size, t, depth, obj, lit,
+        )  # fmt: skip
+        return GroundTruth(depth.astype(np.float32), obj, lit, self.scene.planar)
+
+
+class SyntheticCamera(Camera):
+    """A camera that renders a built-in scene (``synthetic:SCENE``).
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig the scene is rendered with.
+    scene : str
+        Name of a built-in scene (see :data:`lightflow.drivers.scenes.SCENES`).
+    frames : int or None
+        Number of frames, ``None`` for endless.
+    fps : float
+        Frame rate (exposure start times are ``i / fps``).
+    exposure_s : float, optional
+        Defaults to the scene's nominal exposure.
+    seed : int
+        Noise seed.
+    realtime : bool
+        Pace frames at ``fps`` (as a live camera would).
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        scene: str,
+        frames: int | None = 10,
+        fps: float = 30.0,
+        exposure_s: float | None = None,
+        seed: int = 0,
+        realtime: bool = False,
+        sensor: SensorModel = SensorModel(),
+        start_s: float = 0.0,
+    ):
+        self.scene = get_scene(scene)
+        self.uri = f"synthetic:{scene}"
+        self.rig = rig
+        self.n_frames = frames
+        self.fps = fps
+        self._exposure = exposure_s or self.scene.exposure_s
+        self.seed = seed
+        self.realtime = realtime
+        self.sensor = sensor
+        self.start_s = start_s
+        self._renderer: SceneRenderer | None = None
+        self._stop = threading.Event()
+
+    def open(self) -> None:
+        self._renderer = SceneRenderer(self.rig, self.scene, self.sensor)
+        self._stop.clear()
+
+    def close(self) -> None:
+        self._renderer = None
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.rig.camera.width, self.rig.camera.height
+
+    @property
+    def exposure_s(self) -> float:
+        return self._exposure
+
+    def set_exposure(self, seconds: float) -> float:
+        if not 1e-5 <= seconds <= 1.0:
+            raise DriverError(f"{self.uri}: exposure {seconds} s out of range 10 us .. 1 s")
+        self._exposure = float(seconds)
+        return self._exposure
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def frames(self) -> Iterator[Frame]:
+        if self._renderer is None:
+            raise DriverError(f"{self.uri}: camera is not open")
+        rng = np.random.default_rng(self.seed)
+        i = 0
+        while (self.n_frames is None or i < self.n_frames) and not self._stop.is_set():
+            t0 = self.start_s + i / self.fps
+            exposure = self._exposure
+            image = self._renderer.expose(self._renderer.radiance(t0, exposure), rng)
+            truth = self._renderer.truth(t0 + exposure / 2)
+            yield Frame(i, t0, exposure, image, f"{i:06d}", {"truth": truth})
+            i += 1
+            if self.realtime and self._stop.wait(1.0 / self.fps):
+                break

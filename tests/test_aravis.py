@@ -1,0 +1,196 @@
+"""The Aravis driver against the real GigE Vision simulator on loopback.
+
+Runs only in a private network namespace (``make test`` provides one):
+discovery broadcasts, and nothing may leave this machine.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+from aravis_sim import SIM_ADDRESS, Simulator, private_netns_problem
+from lightflow.app.errors import DeviceLostError, DriverError
+from lightflow.drivers.aravis import (
+    AravisCamera,
+    _id_step,
+    convert_image,
+    list_aravis_devices,
+)
+
+pytestmark = pytest.mark.aravis
+
+
+@pytest.fixture(scope="module")
+def netns():
+    problem = private_netns_problem()
+    if problem:
+        pytest.fail(problem)
+
+
+@pytest.fixture
+def sim(netns):
+    with Simulator() as simulator:
+        yield simulator
+
+
+def test_private_network_namespace(netns):
+    assert [name for _, name in socket.if_nameindex()] == ["lo"]
+
+
+def test_exposure_and_controls(sim):
+    with AravisCamera(SIM_ADDRESS) as cam:
+        assert cam.uri == "aravis:127.0.0.1"
+        # The simulator offers RGB8: the preferred (colour) format is chosen.
+        assert cam.pixel_format == "RGB8"
+        assert cam.set_exposure(0.004) == pytest.approx(0.004)
+        assert cam.exposure_s == pytest.approx(0.004)
+        assert cam.set_frame_rate(50.0) == pytest.approx(50.0)
+        assert cam.size == (512, 512)
+        cam.set_size(256, 128)
+        assert cam.size == (256, 128)
+        with pytest.raises(DriverError, match=r"256x128, cannot set 5000x5000"):
+            cam.set_size(5000, 5000)
+        with pytest.raises(DriverError, match="outside the camera's range"):
+            cam.set_exposure(1e6)
+
+
+def test_explicit_pixel_format(sim):
+    with AravisCamera(SIM_ADDRESS, pixel_format="Mono8") as cam:
+        assert cam.pixel_format == "Mono8"
+        frame = next(iter(cam.frames()))
+        assert frame.image.shape == (512, 512, 3) and frame.image.dtype == np.uint8
+        # Mono replicated to three channels.
+        assert np.array_equal(frame.image[..., 0], frame.image[..., 2])
+    with pytest.raises(DriverError, match="pixel format YUV9 not offered"):
+        AravisCamera(SIM_ADDRESS, pixel_format="YUV9").open()
+
+
+def test_stream_100_frames_without_loss(sim):
+    with AravisCamera(SIM_ADDRESS) as cam:
+        cam.set_exposure(0.002)
+        cam.set_frame_rate(100.0)
+        frames = []
+        for frame in cam.frames():
+            frames.append(frame)
+            if len(frames) == 120:
+                cam.stop()
+        stats = cam.stats()
+    ids = [f.index for f in frames]
+    # Contiguous, across the simulator's 16-bit id wrap (it starts near 65400).
+    assert ids == list(range(ids[0], ids[0] + 120))
+    stamps = np.array([f.timestamp for f in frames])
+    assert np.all(np.diff(stamps) > 0)
+    assert np.median(np.diff(stamps)) == pytest.approx(0.01, rel=0.2)
+    assert all(f.exposure_s == pytest.approx(0.002) for f in frames)
+    assert frames[0].image.shape == (512, 512, 3) and frames[0].image.dtype == np.uint8
+    assert frames[0].image.any()
+    assert stats["failures"] == 0 and stats["bad_buffers"] == 0
+    assert stats["missing_packets"] == 0
+    assert stats["completed"] >= 120 and stats["delivered"] == 120
+
+
+def test_stop_from_another_thread(sim):
+    with AravisCamera(SIM_ADDRESS, pixel_format="Mono8") as cam:
+        got = []
+        timer = threading.Timer(0.5, cam.stop)
+        timer.start()
+        t0 = time.monotonic()
+        for frame in cam.frames():
+            got.append(frame.index)
+        assert time.monotonic() - t0 < 2.0
+        assert len(got) > 3
+
+
+def test_camera_lost_mid_stream(sim):
+    cam = AravisCamera(SIM_ADDRESS, pixel_format="Mono8", lost_after_s=0.5)
+    cam.open()
+    n = 0
+    t_kill = None
+    with pytest.raises(DeviceLostError) as info:
+        for _ in cam.frames():
+            n += 1
+            if n == 10:
+                sim.kill()
+                t_kill = time.monotonic()
+    detect = time.monotonic() - t_kill
+    message = str(info.value)
+    assert message.startswith("aravis:127.0.0.1: camera lost after 1")
+    assert "\n" not in message
+    assert detect < 3.0
+    t0 = time.monotonic()
+    cam.close()
+    cam.close()
+    assert time.monotonic() - t0 < 1.0
+    # The dead camera's objects are freed in the background once Aravis gives
+    # up on its control channel (it retries for several seconds).
+    assert cam.released.wait(timeout=20.0)
+
+
+def test_list_devices_finds_simulator(sim):
+    devices = list_aravis_devices()
+    assert any(d.address == SIM_ADDRESS and d.model == "Fake" for d in devices), devices
+    sim_dev = next(d for d in devices if d.address == SIM_ADDRESS)
+    assert sim_dev.protocol == "GigEVision" and sim_dev.serial == "GV01"
+    # The id discovery reports opens the same camera.
+    with AravisCamera(sim_dev.id) as cam:
+        assert cam.size == (512, 512)
+
+
+def test_open_missing_camera_is_one_line(netns):
+    with pytest.raises(DriverError, match=r"^aravis:no-such-camera: cannot open camera"):
+        AravisCamera("no-such-camera").open()
+
+
+# -- pure conversions (no simulator) -------------------------------------------
+
+
+def _mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
+    """Sample an RGB image through a Bayer filter named GenICam-style (first row)."""
+    idx = {"R": 0, "G": 1, "B": 2}
+    out = np.empty(rgb.shape[:2], rgb.dtype)
+    # Rows alternate: the second row holds the colours missing from the first.
+    second = {"RG": "GB", "GR": "BG", "GB": "RG", "BG": "GR"}[pattern]
+    for r, row in enumerate((pattern, second)):
+        for c in range(2):
+            out[r::2, c::2] = rgb[r::2, c::2, idx[row[c]]]
+    return out
+
+
+@pytest.mark.parametrize("pattern", ["RG", "GR", "GB", "BG"])
+@pytest.mark.parametrize("depth", [8, 12])
+def test_bayer_conversion(pattern, depth):
+    colour = (200, 90, 30) if depth == 8 else (3000, 1500, 400)
+    dtype = np.uint8 if depth == 8 else np.uint16
+    rgb = np.empty((16, 24, 3), dtype)
+    rgb[:] = colour
+    raw = _mosaic(rgb, pattern)
+    out = convert_image(raw.astype("<u2" if depth > 8 else np.uint8).tobytes(),
+                        f"Bayer{pattern}{depth}", 24, 16)
+    assert out.dtype == dtype and out.shape == (16, 24, 3)
+    assert np.array_equal(out[4:-4, 4:-4], rgb[4:-4, 4:-4])
+
+
+def test_rgb8_and_mono16_with_row_padding():
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (5, 7, 3), np.uint8)
+    padded = np.zeros((5, 7 * 3 + 4), np.uint8)
+    padded[:, :21] = rgb.reshape(5, 21)
+    assert np.array_equal(convert_image(padded.tobytes(), "RGB8", 7, 5, row_padding=4), rgb)
+    mono = rng.integers(0, 65536, (5, 7), np.uint16)
+    out = convert_image(mono.astype("<u2").tobytes(), "Mono16", 7, 5)
+    assert out.dtype == np.uint16 and np.array_equal(out, np.dstack([mono] * 3))
+    assert np.array_equal(cv2.cvtColor(out, cv2.COLOR_RGB2GRAY), mono)
+    with pytest.raises(DriverError, match="needs 105 bytes, got 10"):
+        convert_image(b"0123456789", "RGB8", 7, 5)
+
+
+def test_frame_id_unwrap():
+    assert _id_step(65534, 65535) == 1
+    assert _id_step(65535, 1) == 1
+    assert _id_step(65534, 2) == 3
+    assert _id_step(10, 13) == 3

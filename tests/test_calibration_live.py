@@ -1,0 +1,106 @@
+"""Live capture loop with a free-running simulated camera and a fake pattern output."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from lightflow.app.rig import load_rig
+from lightflow.calibration.live import calibrate_live
+from lightflow.calibration.session import ProjectorSpec, read_session
+from lightflow.calibration.simulate import (
+    DEFAULT_BOARD,
+    SimParams,
+    _PlaneView,
+    checkerboard_albedo,
+    generate_poses,
+    scaled_rig,
+)
+from lightflow.drivers.base import Camera, Frame
+
+
+class _Scene:
+    """The board pose the user holds and what each projector shows."""
+
+    def __init__(self, rig, poses):
+        self.rig, self.poses, self.pose = rig, poses, -1
+        self.params = SimParams(supersample=1)
+        self.views = {}
+        self.shown = {p.name: np.zeros((p.height, p.width), np.float32) for p in rig.projectors}
+        self.lock = threading.Lock()
+
+    def next_pose(self, prompt):
+        with self.lock:
+            self.pose += 1
+            R, t = self.poses[self.pose]
+            alb = checkerboard_albedo(DEFAULT_BOARD, self.params)
+            self.views = {p.name: _PlaneView(self.rig.camera, p, R, t, alb, self.params)
+                          for p in self.rig.projectors}
+
+    def render(self, rng):
+        with self.lock:
+            imgs = [v.render(self.shown[n], rng).astype(np.float32) for n, v in self.views.items()]
+        return np.clip(sum(imgs), 0, 255).astype(np.uint8)
+
+
+class _Outputs:
+    def __init__(self, scene):
+        self.scene = scene
+
+    def show(self, projector, image):
+        with self.scene.lock:
+            self.scene.shown[projector] = image[..., 0].astype(np.float32)
+
+    def wait_presented(self, timeout=None):
+        return True
+
+
+class _Camera(Camera):
+    uri = "sim:"
+
+    def __init__(self, scene):
+        self.scene, self._stop = scene, threading.Event()
+
+    def open(self):
+        pass
+
+    def close(self):
+        pass
+
+    @property
+    def size(self):
+        return (self.scene.rig.camera.width, self.scene.rig.camera.height)
+
+    @property
+    def exposure_s(self):
+        return 0.01
+
+    def set_exposure(self, seconds):
+        return 0.01
+
+    def stop(self):
+        self._stop.set()
+
+    def frames(self):
+        rng = np.random.default_rng(0)
+        i = 0
+        while not self._stop.is_set():
+            yield Frame(i, 0.0, 0.01, np.repeat(self.scene.render(rng)[..., None], 3, -1))
+            i += 1
+
+
+def test_live_capture_writes_a_valid_session(tmp_path):
+    rig = scaled_rig(load_rig("app/rigs/two-projector.json"), 0.25, 0.1)  # 400x300, 128x80
+    poses = generate_poses(rig, DEFAULT_BOARD, 3, seed=5)
+    poses.insert(1, poses[0])  # the user holds the same pose twice: rejected
+    scene = _Scene(rig, poses)
+    said = []
+    specs = [ProjectorSpec(p.name, p.width, p.height, p.patterns) for p in rig.projectors]
+    session = calibrate_live(_Camera(scene), _Outputs(scene), DEFAULT_BOARD, specs, tmp_path,
+                             n_poses=3, ask=scene.next_pose, say=said.append)
+    assert [p.name for p in session.poses] == ["pose00", "pose01", "pose02"]
+    assert any("too similar to pose00" in s for s in said)
+    s = read_session(tmp_path)
+    assert len(s.poses) == 3 and len(s.poses[2].frames["right"]) == 2 + 2 * (7 + 7)
+    frames = list(s.iter_frames(s.poses[0], s.projectors[0]))
+    assert frames[0].mean() > frames[1].mean() + 5  # white brighter than black

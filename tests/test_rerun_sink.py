@@ -1,0 +1,152 @@
+"""Rerun sink: write an .rrd from a hand-made FrameResult and read it back; serve on loopback."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.results import BandSet, FrameResult, RunStats
+from lightflow.app.rig import load_rig
+from lightflow.app.sinks.rerun_sink import RerunSink
+from lightflow.drivers.base import Frame
+from rerun.chunk import RrdReader
+
+RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_rig(RIG_FILE).scaled(0.25)  # 400x300, fx = 450
+
+
+def make_result(rig, index: int) -> FrameResult:
+    h, w = rig.camera.height, rig.camera.width
+    depth = np.full((h, w), 0.8 + 0.01 * index, np.float32)  # a fronto-parallel plane
+    depth[: h // 2] = np.nan  # top half: no estimate
+    image = np.zeros((h, w, 3), np.uint8)
+    image[..., 0] = 200
+    bands = [
+        BandSet(
+            "red",
+            rows=np.array([10, 20, 30], np.float32),
+            starts=np.array([5, 6, 7], np.float32),
+            ends=np.array([9, 10, 11], np.float32),
+            valid=np.array([True, False, True]),
+        ),
+        BandSet("blue", *(np.zeros(0, np.float32) for _ in range(3)), np.zeros(0, bool)),
+    ]
+    grid = np.full((h // 4, w // 4), 3.0, np.float32)
+    return FrameResult(
+        Frame(index, 1.0 + index / 30, 0.02, image), depth, [grid, grid * 2],
+        np.log(grid / (grid * 2)), bands, 4, coverage=0.5,
+    )  # fmt: skip
+
+
+def chunks_by_entity(path: Path) -> dict[str, list]:
+    out: dict[str, list] = {}
+    for chunk in RrdReader(path).stream():
+        out.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
+    return out
+
+
+def column(batches, name: str) -> list:
+    return [v for rb in batches if name in rb.schema.names for v in rb.column(name).to_pylist()]
+
+
+def test_rrd_round_trip(tmp_path, rig):
+    path = tmp_path / "out" / "demo.rrd"
+    sink = RerunSink(rig, "rrd", path=path, max_points=5000)
+    for i in range(3):
+        sink.write(make_result(rig, i), RunStats(fps=29.5, latency_ms=12.0, dropped=i))
+    sink.close()
+    sink.close()  # twice is fine
+    assert sink.describe() == f"Rerun: 3 frames in {path}; open with `rerun {path}`"
+
+    ent = chunks_by_entity(path)
+    for name in ["/camera", "/camera/image", "/camera/image/bands/red", "/camera/depth",
+                 "/flow/red", "/flow/blue", "/flow/log_ratio", "/world/camera",
+                 "/world/camera/points", "/stats/fps", "/stats/latency_ms",
+                 "/stats/dropped", "/stats/coverage"]:  # fmt: skip
+        assert name in ent, name
+
+    K = column(ent["/world/camera"], "Pinhole:image_from_camera")[0][0]  # column-major
+    assert (K[0], K[4], K[6], K[7]) == (450.0, 450.0, 199.5, 149.5)
+    assert column(ent["/world/camera"], "Pinhole:resolution")[0] == [[400.0, 300.0]]
+
+    assert sorted(column(ent["/camera/depth"], "frame")) == [0, 1, 2]
+    fmt = column(ent["/camera/depth"], "DepthImage:format")[0][0]
+    buf = bytes(column(ent["/camera/depth"], "DepthImage:buffer")[0][0])
+    depth = np.frombuffer(buf, np.float32).reshape(fmt["height"], fmt["width"])
+    assert depth.shape == (300, 400)
+    assert (depth[:150] == 0).all()  # no estimate is 0 for Rerun
+    assert depth[150:] == pytest.approx(0.8)
+    assert column(ent["/camera/depth"], "DepthImage:meter")[0] == [1.0]
+
+    positions = column(ent["/world/camera/points"], "Points3D:positions")
+    assert [len(p) for p in positions] == [5000, 5000, 5000]  # 60000 subsampled
+    assert {round(p[2], 4) for p in positions[0]} == {0.8}
+
+    strips = column(ent["/camera/image/bands/red"], "LineStrips2D:strips")[0]
+    assert strips[1] == [[6.0, 20.0], [10.0, 20.0]]
+    colors = column(ent["/camera/image/bands/red"], "LineStrips2D:colors")[0]
+    assert colors[0] != colors[1]  # invalid band dimmed
+
+    assert column(ent["/stats/dropped"], "Scalars:scalars") == [[0.0], [1.0], [2.0]]
+    assert column(ent["/stats/coverage"], "Scalars:scalars")[0] == [0.5]
+
+    reader = RrdReader(path)
+    assert len(reader.blueprints()) == 1
+
+
+def test_rrd_compressed_image(tmp_path, rig):
+    path = tmp_path / "c.rrd"
+    sink = RerunSink(rig, "rrd", path=path, compress=True)
+    sink.write(make_result(rig, 0), RunStats())
+    sink.close()
+    ent = chunks_by_entity(path)
+    blob = bytes(column(ent["/camera/image"], "EncodedImage:blob")[0][0])
+    assert blob[:2] == b"\xff\xd8"  # JPEG
+
+
+def test_bad_options(rig, monkeypatch):
+    with pytest.raises(ConfigError, match="expected one of rrd, spawn, serve"):
+        RerunSink(rig, "web")
+    with pytest.raises(ConfigError, match="a path is needed"):
+        RerunSink(rig, "rrd")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(DriverError, match="no display.*--rrd FILE"):
+        RerunSink(rig, "spawn")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_serve_listens_on_loopback_only(rig):
+    port = free_port()
+    sink = RerunSink(rig, "serve", port=port)
+    try:
+        proc = psutil.Process(sink._process.pid)
+        listening = [
+            c.laddr
+            for p in [proc, *proc.children(recursive=True)]
+            for c in p.net_connections(kind="inet")
+            if c.status == psutil.CONN_LISTEN
+        ]
+        assert listening and all(addr.ip == "127.0.0.1" for addr in listening)
+        assert any(addr.port == port for addr in listening)
+        sink.write(make_result(rig, 0), RunStats())
+        assert sink.describe() == (
+            f"Rerun server on 127.0.0.1:{port}: "
+            f"`rerun --connect rerun+http://127.0.0.1:{port}/proxy`"
+        )
+    finally:
+        sink.close()
+    assert not proc.is_running() or proc.status() == psutil.STATUS_ZOMBIE
