@@ -317,25 +317,22 @@ class ProjectorWindows(PatternOutput):
     def _create_window(self, slot: _Slot, pscreen) -> None:
         pyglet = _pyglet()
         from pyglet import gl
-        from pyglet.window import Window
 
         info = slot.screen
-        # Create hidden, move onto the screen, then map: a window manager
-        # puts a fullscreen window on the monitor where it already is.
-        window = Window(
-            fullscreen=True,
-            screen=pscreen,
-            style=Window.WINDOW_STYLE_BORDERLESS,
-            caption=f"lightflow projector {slot.name}",
-            vsync=self.vsync,
-            visible=False,
-        )
-        slot.window = window
-        window.set_location(info.x, info.y)
-        window.set_mouse_visible(False)
-        window.set_visible(True)
-        self._verify_placement(slot)
-
+        misplaced = self._place_window(slot, pscreen, override_redirect=False)
+        if misplaced:
+            # pyglet issue 763: a window manager may put a fullscreen window on
+            # another monitor.  An override-redirect window is not managed at all.
+            slot.window.close()
+            again = self._place_window(slot, pscreen, override_redirect=True)
+            if again:
+                slot.window.close()
+                slot.window = None
+                raise DriverError(
+                    f"projector {slot.name!r}: window meant for {info.describe()} landed at "
+                    f"{misplaced}, and at {again} when bypassing the window manager"
+                )
+        window = slot.window
         window.switch_to()
         h, w = slot.shape[:2]
         # nearest, no mipmaps: texel centres fall on pixel centres at integer offsets
@@ -358,19 +355,55 @@ class ProjectorWindows(PatternOutput):
 
         window.push_handlers(on_close=on_close, on_expose=on_expose, on_draw=on_draw)
 
-    def _verify_placement(self, slot: _Slot) -> None:
+    def _place_window(self, slot: _Slot, pscreen, override_redirect: bool) -> str:
+        """Create and map the slot's window on its screen; describe the misplacement, or ''."""
+        from pyglet.libs.x11 import xlib
+        from pyglet.window import Window
+
+        info = slot.screen
+        # Created hidden, moved onto the screen, then mapped: a window manager
+        # puts a fullscreen window on the monitor where it already is.
+        window = Window(
+            fullscreen=True,
+            screen=pscreen,
+            style=Window.WINDOW_STYLE_BORDERLESS,
+            caption=f"lightflow projector {slot.name}",
+            vsync=self.vsync,
+            visible=False,
+        )
+        slot.window = window
+        if override_redirect:
+            attrs = xlib.XSetWindowAttributes()
+            attrs.override_redirect = True
+            xlib.XChangeWindowAttributes(
+                window._x_display,  # noqa: SLF001 - pyglet has no public handle for this
+                window._window,  # noqa: SLF001
+                xlib.CWOverrideRedirect,
+                ctypes.byref(attrs),
+            )
+        window.set_location(info.x, info.y)
+        window.set_mouse_visible(False)
+        window.set_visible(True)
+        window.activate()  # keyboard focus for Esc (a window manager would not give it)
+        return self._misplacement(slot)
+
+    def _misplacement(self, slot: _Slot) -> str:
+        """'' if the window covers exactly its screen, else where it really is.
+
+        Asks the X server (where the GL drawable is in root coordinates) and
+        pyglet (location, size, framebuffer size); all must agree.
+        """
         info, window = slot.screen, slot.window
         want = (info.x, info.y, info.width, info.height)
         got = _x11_geometry(window)
         loc, size = window.get_location(), window.get_size()
         fb = window.get_framebuffer_size()
         if got == want and loc == (info.x, info.y) and size == fb == (info.width, info.height):
-            return
+            return ""
         gx, gy, gw, gh = got
-        raise DriverError(
-            f"projector {slot.name!r}: window meant for {info.describe()} landed at "
-            f"{gw}x{gh}+{gx}+{gy} (pyglet reports location {loc}, size {size}, framebuffer "
-            f"{fb}); is a window manager moving it?"
+        return (
+            f"{gw}x{gh}+{gx}+{gy} (pyglet: location {loc[0]},{loc[1]}, size {size[0]}x{size[1]}, "
+            f"framebuffer {fb[0]}x{fb[1]})"
         )
 
     def _render(self, slot: _Slot) -> None:

@@ -245,10 +245,16 @@ def render_exposure(
             acc0 = 0.0
             acc1 = 0.0
             acc2 = 0.0
+            # Cranley-Patterson rotation: every pixel gets its own phase of the
+            # stratified pattern, so no sampling error is shared by all pixels
+            h1 = ((i * 73856093) ^ (j * 19349663)) & 0xFFFFFF
+            ph_t = (h1 % 4093) / 4093.0
+            ph_x = ((h1 // 4093) % 61) / 61.0
+            ph_y = ((h1 // 249673) % 67) / 67.0
             for k in range(samples):
-                t = t0 + exposure * offsets[k, 0]
-                ox = offsets[k, 1]
-                oy = offsets[k, 2]
+                t = t0 + exposure * ((offsets[k, 0] + ph_t) % 1.0)
+                ox = ((offsets[k, 1] + 0.5 + ph_x) % 1.0) - 0.5
+                oy = ((offsets[k, 2] + 0.5 + ph_y) % 1.0) - 0.5
                 dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
                 dy = rays[i, j, 1] + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
                 dz = 1.0
@@ -343,9 +349,8 @@ def render_truth(rays, prims, tex, projs, proj_centre, proj_size, t, depth, obj,
 
 def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
     """``(samples, 3)`` jittered (time fraction, dx, dy) covering exposure and pixel area."""
-    rng = np.random.default_rng(seed)
     k = np.arange(samples)
-    t = (k + rng.uniform(0.2, 0.8, samples)) / samples
+    t = (k + 0.5) / samples  # the renderer rotates this per pixel
     # R2 low-discrepancy sequence for the pixel footprint, decorrelated from time
     g = 1.32471795724474602596
     ox = ((0.5 + k / g) % 1.0) - 0.5

@@ -49,7 +49,12 @@ disp, out_dir = cfg["display"], cfg["out"]
 res = {"screens": [asdict(s) for s in list_screens(disp)]}
 if cfg.get("fake_geometry"):  # what the X server would say if a window manager moved it
     import lightflow.drivers.projector as P
-    P._x11_geometry = lambda window: tuple(cfg["fake_geometry"])
+    real, calls = P._x11_geometry, []
+
+    def fake(window):
+        calls.append(1)
+        return tuple(cfg["fake_geometry"]) if len(calls) <= cfg["fake_times"] else real(window)
+    P._x11_geometry = fake
 rig = load_rig(cfg["rig"])
 outputs = [(p.name, s, pattern_image(p)) for p, s in zip(rig.projectors, cfg["screens"])]
 out = ProjectorWindows(outputs, display=disp, allow_size_mismatch=cfg.get("allow", False))
@@ -189,14 +194,21 @@ def test_wrong_screen_index_is_one_line_driver_error(xorg2, tmp_path):
     assert "0=DUMMY0 1280x800+0+0" in msg and "1=DUMMY1 1280x800+1280+0" in msg
 
 
-def test_misplaced_window_is_a_driver_error(xorg2, tmp_path):
-    # no window manager here moves windows, so the X11 geometry query is faked
+def test_misplaced_window_is_recreated_unmanaged_then_refused(xorg2, tmp_path):
+    # No window manager here moves windows, so the X11 geometry query is faked:
+    # misplaced once, the driver retries with an override-redirect window.
     res = run_scenario(xorg2, tmp_path, RIGS / "two-projector.json", [0, 1],
-                       fake_geometry=[0, 0, 1280, 800])
+                       fake_geometry=[0, 0, 1280, 800], fake_times=2)
+    assert res["placements"] == [["left", 0], ["right", 1]] and res["errors"] == []
+    shot = np.load(tmp_path / "initial.npy")
+    np.testing.assert_array_equal(shot[:, 1280:], pattern_image(TWO.projectors[1]))
+    # misplaced both times: a one-line error naming the projector, screen and positions
+    res = run_scenario(xorg2, tmp_path, RIGS / "two-projector.json", [1],
+                       fake_geometry=[0, 0, 1280, 800], fake_times=9)
+    where = "1280x800+0+0 (pyglet: location 1280,0, size 1280x800, framebuffer 1280x800)"
     assert res["error"] == (
-        "projector 'right': window meant for screen 1 (DUMMY1 1280x800+1280+0) landed at "
-        "1280x800+0+0 (pyglet reports location (1280, 0), size (1280, 800), framebuffer "
-        "(1280, 800)); is a window manager moving it?"
+        f"projector 'left': window meant for screen 1 (DUMMY1 1280x800+1280+0) landed at "
+        f"{where}, and at {where} when bypassing the window manager"
     )
 
 

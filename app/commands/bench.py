@@ -1,0 +1,125 @@
+"""``lightflow bench``: time per frame of each depth-pipeline stage at the rig's native size."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from lightflow.app.errors import ConfigError
+
+DESCRIPTION = """\
+Measure how long the depth pipeline takes per frame, stage by stage, at the
+rig's native camera size (1600x1200 for the example rigs).  Frames are
+rendered with the synthetic camera first and kept in memory, so file decoding
+is not counted; the depth table (LUT) is built or loaded before timing, and a
+warm-up pass compiles the numba kernels.  Reported: median and 90th percentile
+per stage, the wall time per frame and the frame rate.
+
+With --recorder, also measures the sustained write rate of the recorder
+(1600x1200 RGB PNG at 30 fps for 5 s): frames/s, MiB/s and dropped frames."""
+
+WARMUP = 2
+
+
+def register(subparsers) -> None:
+    from lightflow.drivers.scenes import SCENES
+
+    p = subparsers.add_parser(
+        "bench",
+        help="time the depth pipeline per stage (and optionally the recorder)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--rig", default="two-projector", metavar="RIG",
+                   help="rig file or example rig name (default: two-projector)")
+    p.add_argument("--scene", default="board", choices=list(SCENES), metavar="NAME",
+                   help=f"scene to render ({', '.join(SCENES)}; default: board)")
+    p.add_argument("--frames", type=int, default=20, metavar="N",
+                   help="timed process() calls (default: 20)")
+    p.add_argument("--stride", type=int, default=None, choices=(1, 2, 4),
+                   help="analysis grid stride (default: the pipeline's)")
+    p.add_argument("--recorder", action="store_true",
+                   help="also benchmark the recording writer")
+    p.set_defaults(func=run)
+
+
+def _progress(stage: str, i: int, n: int) -> None:
+    end = "\n" if i == n else ""
+    print(f"\r{stage}: {i}/{n}", end=end, file=sys.stderr, flush=True)
+
+
+def stage_table(timings: list[dict[str, float]], wall_ms: list[float]) -> list[str]:
+    """Median and p90 per stage (in pipeline order) plus wall time, as text lines."""
+    stages = [k for k in timings[0] if k != "total"]
+    rows = []
+    for name in [*stages, "total"]:
+        v = np.array([t.get(name, np.nan) for t in timings])
+        rows.append((name, np.nanmedian(v), np.nanpercentile(v, 90)))
+    rows.append(("wall per frame", float(np.median(wall_ms)), float(np.percentile(wall_ms, 90))))
+    width = max(len(r[0]) for r in rows)
+    out = [f"{'stage':<{width}}  {'median ms':>9}  {'p90 ms':>8}",
+           f"{'-' * width}  {'-' * 9}  {'-' * 8}"]  # fmt: skip
+    for name, med, p90 in rows:
+        if name == "total":
+            out.append(out[1])
+        out.append(f"{name:<{width}}  {med:>9.1f}  {p90:>8.1f}")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from lightflow.app.commands.simulate import resolve_rig
+    from lightflow.app.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.drivers.synthetic import SyntheticCamera
+
+    if args.frames < 1:
+        raise ConfigError(f"--frames: expected at least 1, got {args.frames}")
+    rig = resolve_rig(args.rig)
+    cam = rig.camera
+    config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
+    print(f"rig {args.rig}: camera {cam.width}x{cam.height}, {len(rig.projectors)} projector(s),"
+          f" scene {args.scene}, stride {config.stride}")
+    n_render = 2
+    camera = SyntheticCamera(rig, args.scene, frames=n_render)
+    frames = []
+    with camera:
+        _progress("rendering test frames", 0, n_render)
+        for i, frame in enumerate(camera.frames()):
+            frames.append(frame)
+            _progress("rendering test frames", i + 1, n_render)
+    t0 = time.perf_counter()
+    pipeline = DepthPipeline(rig, config, progress=lambda i, n: _progress("depth table", i, n))
+    print(f"depth table ready in {time.perf_counter() - t0:.1f} s (not timed)", file=sys.stderr)
+    for i in range(WARMUP):  # the first calls compile the numba kernels
+        pipeline.process(frames[i % len(frames)])
+        _progress("warm-up", i + 1, WARMUP)
+    timings, wall = [], []
+    for i in range(args.frames):
+        frame = frames[i % len(frames)]
+        t = time.perf_counter()
+        result = pipeline.process(frame)
+        wall.append((time.perf_counter() - t) * 1e3)
+        timings.append(dict(result.timings_ms))
+        _progress("timing", i + 1, args.frames)
+    print()
+    for line in stage_table(timings, wall):
+        print(line)
+    med = float(np.median(wall))
+    print(f"\n{1e3 / med:.1f} frames/s (median wall time {med:.1f} ms over {args.frames} frames,"
+          f" {sum(wall) / 1e3:.2f} s in all)")
+    if args.recorder:
+        _run_recorder()
+    return 0
+
+
+def _run_recorder() -> None:
+    from lightflow.app.recording import benchmark_recorder
+
+    seconds = 5.0
+    print(f"\nrecorder: 1600x1200 RGB PNG offered at 30 fps for {seconds:g} s ...", flush=True)
+    r = benchmark_recorder(1600, 1200, 30.0, seconds)
+    print(f"  written  {r['written']:.0f} of {r['offered']:.0f} frames, dropped {r['dropped']:.0f}")
+    print(f"  rate     {r['fps']:.1f} frames/s, {r['mib_per_s']:.1f} MiB/s "
+          f"({r['mib_per_frame']:.2f} MiB per frame)")

@@ -1,0 +1,115 @@
+"""``lightflow rig check RIG``: can this rig measure depth, and how well?"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+from lightflow.app.depth_model import DepthRange
+from lightflow.app.errors import ConfigError
+from lightflow.app.rig import load_rig
+from lightflow.app.rigcheck import BAND_PX, MAX_ERROR_M, check_rig
+
+DESCRIPTION = f"""\
+Check a rig file before scanning with it: is the log flow ratio h(z) steep and
+monotonic (invertible) where the projectors light the scene, and what depth
+error should you expect?
+
+At each working depth (a flat surface facing the camera) the check reports,
+on a coarse grid of camera pixels: where every projector lights the surface
+(the overlap), where h(z) is flat (expected error above {1000 * MAX_ERROR_M:g} mm) or not
+invertible over the depth range, the median slope |dh/dz| and the median
+expected depth error for 1/4 px of error in the band length (assumed
+{BAND_PX:g} px) and in the apparent line interval, as in the paper's precision
+analysis.  Plain-words warnings follow, with what to move.
+
+Pictures of these maps (slope, expected error, usable pixels, overlap, one set
+per working depth) are written as PNGs only when --out DIR is given.
+
+Exit status: 0 when the rig can measure depth (possibly with warnings), 2 when
+it cannot (for example two parallel projectors side by side: h(z) is then
+constant) or the rig file is invalid; the reason is printed on one line."""
+
+EPILOG = """\
+examples:
+  lightflow rig check rig.json
+  lightflow rig check rig.json --out rigcheck/ --depths 0.4 0.6 0.8"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "rig",
+        help="inspect a rig file (`lightflow rig check RIG`)",
+        description="Inspect a rig file.",
+    )
+    sub = p.add_subparsers(dest="rig_command", metavar="SUBCOMMAND")
+    sub.required = True
+    c = sub.add_parser(
+        "check",
+        help="check that the rig can measure depth and estimate its depth error",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    c.add_argument("rig", metavar="RIG", help="rig file (rig.json)")
+    c.add_argument(
+        "--out",
+        metavar="DIR",
+        help="write the maps as PNG pictures into DIR (created if needed)",
+    )
+    c.add_argument(
+        "--depths",
+        metavar="Z",
+        type=float,
+        nargs="+",
+        default=[0.5, 0.75, 1.0],
+        help="working depths in metres to check at (default: 0.5 0.75 1.0)",
+    )
+    c.add_argument(
+        "--near", type=float, default=DepthRange.near, metavar="M",
+        help="near end of the depth range h(z) is inverted over (default: %(default)g m)",
+    )  # fmt: skip
+    c.add_argument(
+        "--far", type=float, default=DepthRange.far, metavar="M",
+        help="far end of the depth range (default: %(default)g m)",
+    )  # fmt: skip
+    c.add_argument(
+        "--stride", type=int, default=8, metavar="PX",
+        help="check every PX-th camera row and column (default: %(default)s)",
+    )  # fmt: skip
+    c.set_defaults(func=run)
+
+
+def write_images(images: dict, out: Path) -> list[Path]:
+    """Write ``name -> BGR image`` as ``out/<name>.png``; the paths written."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot create the folder: {exc.strerror}") from None
+    written = []
+    for name, img in images.items():
+        path = out / f"{name}.png"
+        if not cv2.imwrite(str(path), img):
+            raise ConfigError(f"{path}: cannot write the picture")
+        written.append(path)
+    return written
+
+
+def run(args: argparse.Namespace) -> int:
+    rig = load_rig(args.rig)
+    if args.stride < 1:
+        raise ConfigError(f"--stride: expected an integer >= 1, got {args.stride}")
+    report = check_rig(rig, args.depths, DepthRange(args.near, args.far), args.stride)
+    for line in report.summary_lines():
+        print(line)
+    for warning in report.warnings:
+        print(f"WARNING {warning}")
+    if args.out:
+        paths = write_images(report.images, Path(args.out))
+        print(f"wrote {len(paths)} pictures to {args.out}: " + ", ".join(p.name for p in paths))
+    else:
+        print("(pictures of these maps: add --out DIR)")
+    if report.problem:
+        raise ConfigError(f"{args.rig}: {report.problem}")
+    return 0

@@ -1,0 +1,392 @@
+"""Accuracy of the depth pipeline against the ground truth of simulated recordings.
+
+A simulated recording (``lightflow simulate``) holds, beside its frames,
+``ground_truth/<frame stem>.npz`` (a :class:`~lightflow.drivers.synthetic.GroundTruth`)
+and ``ground_truth/scene.json``.  The metrics are pure numpy functions of a
+depth map and its ground truth; :func:`evaluate_recording` replays a
+recording through :class:`~lightflow.app.pipeline.DepthPipeline` and pools them.
+
+Metrics
+-------
+coverage
+    Of the pixels on a moving object (``object_id >= 2``) that every projector
+    lights, the fraction that got a depth: the method cannot measure what a
+    projector does not light, so those pixels do not count against it.
+depth error
+    ``|depth - true depth|`` on moving-object pixels that got a depth
+    (median, mean, 90th percentile).
+off_object
+    Fraction of all depth pixels that are not on a moving object (static
+    background, or nothing at all): the method measures motion, so these are
+    false detections.
+plane RMSE
+    For planar scenes, the paper's metric: a plane is fitted (robustly) to the
+    3D points of the estimate on each moving object, and the RMSE of the
+    point-to-plane distances of all those points is reported.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lightflow.app.errors import ConfigError
+from lightflow.app.rig import Rig
+
+TRUTH_DIR = "ground_truth"
+SCENE_JSON = "scene.json"
+SCENE_FORMAT = "lightflow-ground-truth/1"
+
+#: Tukey biweight tuning constant (95 % efficiency for Gaussian residuals)
+_TUKEY_C = 4.685
+#: MAD to standard deviation for Gaussian residuals
+_MAD_SCALE = 1.4826
+
+
+@dataclass(frozen=True)
+class FrameMetrics:
+    """Accuracy of one depth map.
+
+    Attributes
+    ----------
+    coverage : float
+        Covered fraction of the moving pixels lit by every projector (NaN if none).
+    median_error_m, mean_error_m, p90_error_m : float
+        Absolute depth error on the moving object (NaN without any estimate there).
+    off_object : float
+        Fraction of depth pixels that are not on a moving object (0 without depth).
+    plane_rmse_m : float
+        Point-to-plane RMSE for planar scenes, NaN otherwise or without rays.
+    n_target, n_covered : int
+        Moving pixels lit by all projectors, and how many of them got a depth.
+    n_depth, n_off : int
+        Pixels with a depth, and how many of them are off the moving objects.
+    n_plane : int
+        Points that entered the plane RMSE.
+    errors : numpy.ndarray
+        The per-pixel absolute errors (float32), for pooling over frames.
+    """
+
+    coverage: float
+    median_error_m: float
+    mean_error_m: float
+    p90_error_m: float
+    off_object: float
+    plane_rmse_m: float
+    n_target: int
+    n_covered: int
+    n_depth: int
+    n_off: int
+    n_plane: int
+    errors: np.ndarray = field(repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class RecordingMetrics:
+    """Accuracy over all frames of a simulated recording.
+
+    Errors are pooled over the pixels of all frames (the median is the median
+    of every per-pixel error, not a median of medians); coverage and
+    off_object are pixel-weighted; the plane RMSE pools the squared distances
+    of the per-frame fits (the board moves between frames).
+    """
+
+    path: str
+    scene: str
+    exposure_s: float
+    frames: int
+    stride: int
+    coverage: float
+    median_error_m: float
+    mean_error_m: float
+    p90_error_m: float
+    off_object: float
+    plane_rmse_m: float
+    planar: bool
+    per_frame: tuple[FrameMetrics, ...] = field(repr=False, compare=False)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (NaN becomes null), with the per-frame figures."""
+        d = {k: v for k, v in asdict(self).items() if k != "per_frame"}
+        d["per_frame"] = [
+            {k: v for k, v in asdict(m).items() if k != "errors"} for m in self.per_frame
+        ]
+        return _nan_to_none(d)
+
+
+def _nan_to_none(value):
+    if isinstance(value, dict):
+        return {k: _nan_to_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nan_to_none(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+# ----------------------------------------------------------------------------- planes
+
+
+def fit_plane(points: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, float]:
+    """Robust total-least-squares plane through ``(n, 3)`` points.
+
+    Iteratively reweighted: each pass fits the weighted plane by the smallest
+    eigenvector of the weighted scatter, then reweights with Tukey's biweight
+    on the residuals scaled by their MAD, so that stray estimates (band ends,
+    object edges) do not tilt the plane.
+
+    Returns
+    -------
+    normal : numpy.ndarray
+        Unit normal ``(3,)``.
+    offset : float
+        ``d`` with ``normal @ x + d = 0`` on the plane.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 3:
+        raise ValueError(f"fit_plane: expected (n >= 3, 3) points, got {pts.shape}")
+    w = np.ones(len(pts))
+    normal, offset = np.array([0.0, 0.0, 1.0]), 0.0
+    for _ in range(iterations):
+        centre = (w @ pts) / w.sum()
+        d = pts - centre
+        scatter = (d * w[:, None]).T @ d
+        _, vecs = np.linalg.eigh(scatter)
+        new_normal = vecs[:, 0]
+        new_offset = -float(new_normal @ centre)
+        converged = abs(abs(new_normal @ normal) - 1) < 1e-12 and abs(
+            abs(new_offset) - abs(offset)
+        ) < 1e-12
+        normal, offset = new_normal, new_offset
+        r = pts @ normal + offset
+        scale = _MAD_SCALE * float(np.median(np.abs(r)))
+        if scale <= 0 or converged:
+            break
+        u = r / (_TUKEY_C * scale)
+        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        if np.count_nonzero(w) < 3:
+            break
+    return normal, offset
+
+
+def plane_residuals(points: np.ndarray) -> np.ndarray:
+    """Signed point-to-plane distances of ``(n, 3)`` points to their robust plane."""
+    normal, offset = fit_plane(points)
+    return np.asarray(points, dtype=np.float64) @ normal + offset
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def _all_lit_mask(truth, n_projectors: int | None) -> np.ndarray:
+    if n_projectors is None:
+        # every projector lights something in a simulated frame, so the union of
+        # the bits present is the "all projectors" value
+        full = int(np.bitwise_or.reduce(truth.lit, axis=None)) if truth.lit.size else 0
+    else:
+        full = (1 << n_projectors) - 1
+    return truth.lit == full
+
+
+def evaluate_frame(
+    depth: np.ndarray,
+    truth,
+    rays: np.ndarray | None = None,
+    n_projectors: int | None = None,
+) -> FrameMetrics:
+    """Compare one depth map with its ground truth.
+
+    Parameters
+    ----------
+    depth : numpy.ndarray
+        ``(H, W)`` estimated z in metres, NaN without estimate.
+    truth : GroundTruth
+        ``depth``, ``object_id``, ``lit`` and ``planar`` of the same frame.
+    rays : numpy.ndarray, optional
+        ``(H, W, 3)`` camera rays with z = 1 (:func:`lightflow.app.geometry.camera_rays`);
+        needed for the plane RMSE of planar scenes.
+    n_projectors : int, optional
+        Number of projectors of the rig; inferred from ``truth.lit`` when omitted.
+
+    Returns
+    -------
+    FrameMetrics
+    """
+    depth = np.asarray(depth)
+    if depth.shape != truth.depth.shape:
+        raise ValueError(f"depth {depth.shape} and ground truth {truth.depth.shape} differ")
+    has_depth = np.isfinite(depth)
+    moving = truth.object_id >= 2
+    target = moving & _all_lit_mask(truth, n_projectors)
+    n_target = int(np.count_nonzero(target))
+    n_covered = int(np.count_nonzero(target & has_depth))
+    n_depth = int(np.count_nonzero(has_depth))
+    n_off = int(np.count_nonzero(has_depth & ~moving))
+    on_object = has_depth & moving & np.isfinite(truth.depth)
+    errors = np.abs(depth[on_object] - truth.depth[on_object]).astype(np.float32)
+    med, mean, p90 = _error_stats(errors)
+    rmse, n_plane = math.nan, 0
+    if truth.planar and rays is not None:
+        sq = []
+        for obj in np.unique(truth.object_id[on_object]):
+            sel = on_object & (truth.object_id == obj)
+            if np.count_nonzero(sel) >= 3:
+                pts = rays[sel] * depth[sel, None].astype(np.float64)
+                sq.append(plane_residuals(pts) ** 2)
+        if sq:
+            all_sq = np.concatenate(sq)
+            rmse, n_plane = float(np.sqrt(all_sq.mean())), int(all_sq.size)
+    return FrameMetrics(
+        coverage=n_covered / n_target if n_target else math.nan,
+        median_error_m=med,
+        mean_error_m=mean,
+        p90_error_m=p90,
+        off_object=n_off / n_depth if n_depth else 0.0,
+        plane_rmse_m=rmse,
+        n_target=n_target,
+        n_covered=n_covered,
+        n_depth=n_depth,
+        n_off=n_off,
+        n_plane=n_plane,
+        errors=errors,
+    )
+
+
+def _error_stats(errors: np.ndarray) -> tuple[float, float, float]:
+    if errors.size == 0:
+        return math.nan, math.nan, math.nan
+    e = errors.astype(np.float64)
+    return float(np.median(e)), float(e.mean()), float(np.percentile(e, 90))
+
+
+def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
+    """Pool per-frame metrics: pixel-weighted fractions, pooled errors and plane distances."""
+    n_target = sum(m.n_target for m in per_frame)
+    n_depth = sum(m.n_depth for m in per_frame)
+    errors = np.concatenate([m.errors for m in per_frame]) if per_frame else np.empty(0)
+    med, mean, p90 = _error_stats(errors)
+    n_plane = sum(m.n_plane for m in per_frame)
+    sq = sum(m.plane_rmse_m**2 * m.n_plane for m in per_frame if m.n_plane)
+    return {
+        "coverage": sum(m.n_covered for m in per_frame) / n_target if n_target else math.nan,
+        "median_error_m": med,
+        "mean_error_m": mean,
+        "p90_error_m": p90,
+        "off_object": sum(m.n_off for m in per_frame) / n_depth if n_depth else 0.0,
+        "plane_rmse_m": math.sqrt(sq / n_plane) if n_plane else math.nan,
+    }
+
+
+# ----------------------------------------------------------------------------- recordings
+
+
+def truth_dir(rec_path: str | Path) -> Path:
+    """``REC/ground_truth`` of a recording folder (or of its ``recording.json``)."""
+    root = Path(rec_path)
+    if root.name == "recording.json":
+        root = root.parent
+    return root / TRUTH_DIR
+
+
+def require_truth(rec_path: str | Path) -> Path:
+    """The ground-truth folder of a recording; ConfigError (one line) when it has none."""
+    d = truth_dir(rec_path)
+    if not d.is_dir():
+        raise ConfigError(
+            f"{rec_path}: no ground truth ({TRUTH_DIR}/ folder) — eval needs a simulated recording"
+        )
+    return d
+
+
+def read_scene_info(rec_path: str | Path) -> dict:
+    """``ground_truth/scene.json`` of a simulated recording ({} when absent)."""
+    from lightflow.app.rig import read_json
+
+    path = truth_dir(rec_path) / SCENE_JSON
+    if not path.is_file():
+        return {}
+    data = read_json(path)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a JSON object")
+    return data
+
+
+def evaluate_recording(
+    rec_path: str | Path,
+    rig: Rig | None = None,
+    config=None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> RecordingMetrics:
+    """Replay every frame of a simulated recording through the pipeline and score it.
+
+    Parameters
+    ----------
+    rec_path : str or Path
+        Recording folder written by ``lightflow simulate``.
+    rig : Rig, optional
+        Overrides the embedded rig.
+    config : PipelineConfig, optional
+    progress : callable, optional
+        ``progress(stage, done, total)`` with stage ``"depth table"`` (LUT build)
+        and ``"frames"``.
+
+    Raises
+    ------
+    ConfigError
+        When the recording has no ground truth or a frame's ground truth is
+        missing or of the wrong size.
+    """
+    from lightflow.app.geometry import camera_rays
+    from lightflow.app.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.recording import load_frame, read_recording
+    from lightflow.drivers.base import Frame
+    from lightflow.drivers.synthetic import GroundTruth
+
+    rec = read_recording(rec_path, rig)
+    tdir = require_truth(rec_path)
+    info = read_scene_info(rec_path)
+    config = config or PipelineConfig()
+    lut_progress = (lambda i, n: progress("depth table", i, n)) if progress else None
+    pipeline = DepthPipeline(rec.rig, config, progress=lut_progress)
+    rays = camera_rays(rec.rig.camera)
+    n_proj = len(rec.rig.projectors)
+    per_frame = []
+    planar = bool(info.get("planar", False))
+    for i, entry in enumerate(rec.frames):
+        tpath = tdir / f"{entry.stem}.npz"
+        if not tpath.is_file():
+            raise ConfigError(f"{tpath}: ground truth of frames[{i}] ({entry.file}) missing")
+        truth = GroundTruth.load(tpath)
+        cam = rec.rig.camera
+        if truth.depth.shape != (cam.height, cam.width):
+            h, w = truth.depth.shape
+            raise ConfigError(
+                f"{tpath}: depth: {w}x{h}, expected {cam.width}x{cam.height} (the rig's camera)"
+            )
+        planar = planar or truth.planar
+        frame = Frame(i, entry.t, rec.exposure_s, load_frame(rec, i), entry.stem)
+        result = pipeline.process(frame)
+        per_frame.append(evaluate_frame(result.depth, truth, rays, n_proj))
+        if progress:
+            progress("frames", i + 1, len(rec.frames))
+    return RecordingMetrics(
+        path=str(rec_path),
+        scene=str(info.get("scene", "?")),
+        exposure_s=rec.exposure_s,
+        frames=len(per_frame),
+        stride=config.stride,
+        planar=planar,
+        per_frame=tuple(per_frame),
+        **pool_metrics(per_frame),
+    )
+
+
+def write_metrics_json(metrics: list[RecordingMetrics], path: str | Path) -> None:
+    """Dump recording metrics (with per-frame figures) as JSON."""
+    doc = {"format": "lightflow-eval/1", "recordings": [m.to_dict() for m in metrics]}
+    Path(path).write_text(json.dumps(doc, indent=1) + "\n")

@@ -1,0 +1,361 @@
+"""The run loop: camera -> depth pipeline -> sinks, on three worker threads.
+
+::
+
+    capture thread ──frames──▶ processing thread ──results──▶ sink thread
+    (owns the camera)  queue   (owns the pipeline)   queue   (owns the sinks)
+
+Each resource has one owning thread.  The queues are bounded: in live mode a
+full queue drops its *oldest* item (a live view wants the newest frame) and
+counts the drop; in lossless mode (offline replay and evaluation) a full
+queue blocks the producer instead, so no frame is ever lost.
+
+Errors: the first exception of any worker is stored and re-raised from
+:meth:`Runner.join` unchanged (a :class:`~lightflow.app.errors.LightflowError`
+stays a one-line message).  Whatever fails, the sink thread writes what
+already reached it and closes every sink exactly once, so a recording of a
+camera that was unplugged mid-stream stays complete and replayable.
+"""
+
+from __future__ import annotations
+
+import collections
+import copy
+import threading
+import time
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from lightflow.app.results import FrameResult, RunStats
+
+#: end of stream marker passed down the queues (never dropped)
+_END = object()
+#: how often camera.stats() is read on the capture thread
+CAMERA_STATS_INTERVAL_S = 0.5
+#: smoothing of the fps and MiB/s estimates (weight of the newest sample)
+EMA_ALPHA = 0.1
+
+
+class DropOldestQueue:
+    """A bounded FIFO whose ``put`` drops the oldest item when full (or blocks when lossless).
+
+    Parameters
+    ----------
+    maxsize : int
+        Capacity (at least 1).
+    lossless : bool
+        Block ``put`` while full instead of dropping.
+    name : str
+        Shown in the statistics (``dropped_<name>``).
+    """
+
+    def __init__(self, maxsize: int, lossless: bool = False, name: str = "queue"):
+        self.maxsize = max(1, int(maxsize))
+        self.lossless = lossless
+        self.name = name
+        self.dropped = 0
+        self._items: collections.deque = collections.deque()
+        self._cond = threading.Condition()
+        self._aborted = False
+
+    def put(self, item: Any) -> bool:
+        """Add an item; return False when the queue was aborted (item discarded)."""
+        with self._cond:
+            while self.lossless and len(self._items) >= self.maxsize and not self._aborted:
+                self._cond.wait()
+            if self._aborted:
+                return False
+            if len(self._items) >= self.maxsize:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+            self._cond.notify_all()
+            return True
+
+    def put_end(self) -> None:
+        """Mark the end of the stream; never blocks, never dropped."""
+        with self._cond:
+            self._items.append(_END)
+            self._cond.notify_all()
+
+    def get(self) -> Any:
+        """Next item, or the end marker once the stream ended or the queue was aborted."""
+        with self._cond:
+            while not self._items and not self._aborted:
+                self._cond.wait()
+            if self._aborted:
+                return _END
+            item = self._items.popleft()
+            self._cond.notify_all()
+            return item
+
+    def abort(self) -> None:
+        """Wake everyone: producers discard, consumers see the end (the other side is gone)."""
+        with self._cond:
+            self._aborted = True
+            self._items.clear()
+            self._cond.notify_all()
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+
+class Runner:
+    """Run a camera through a depth pipeline into sinks on three worker threads.
+
+    Parameters
+    ----------
+    camera : Camera
+        An *opened* camera (the caller opens and closes it, e.g. to set its
+        size and exposure first).  Only the capture thread iterates it.
+    pipeline : object
+        Anything with ``process(frame) -> FrameResult`` (a
+        :class:`~lightflow.app.pipeline.DepthPipeline`).  Only the processing
+        thread calls it.
+    sinks : iterable of Sink
+        Written in order, one ``write(result, stats)`` per result; closed
+        exactly once when the run ends, whatever happened.
+    queue_size : int
+        Capacity of each of the two queues.
+    on_stats : callable, optional
+        ``on_stats(stats)`` on the sink thread after every result (e.g. a status line).
+    lossless : bool
+        Block instead of dropping when a queue is full (offline replay).
+    on_result : callable, optional
+        ``on_result(result)`` on the sink thread before the sinks (e.g. auto exposure).
+
+    Examples
+    --------
+    Blocking::
+
+        with camera:
+            stats = Runner(camera, pipeline, sinks).run(stop)
+
+    With the main thread busy (pyglet)::
+
+        runner.start(stop)
+        windows.run(stop)     # returns when stop is set (also set when the run ends)
+        stats = runner.join()
+    """
+
+    def __init__(
+        self,
+        camera,
+        pipeline,
+        sinks: Iterable,
+        queue_size: int = 4,
+        on_stats: Callable[[RunStats], None] | None = None,
+        lossless: bool = False,
+        on_result: Callable[[FrameResult], None] | None = None,
+    ):
+        self.camera = camera
+        self.pipeline = pipeline
+        self.sinks = list(sinks)
+        self.on_stats = on_stats
+        self.on_result = on_result
+        self.lossless = lossless
+        self.frames_q = DropOldestQueue(queue_size, lossless, "frames")
+        self.results_q = DropOldestQueue(queue_size, lossless, "results")
+        self._stats = RunStats()
+        self._lock = threading.Lock()
+        self._error: BaseException | None = None
+        self._threads: list[threading.Thread] = []
+        self._stop: threading.Event | None = None
+        self._ended = threading.Event()
+        self._started = False
+        self.sinks_closed = False
+        #: True when the run ended because ``stop`` was set (Ctrl-C, window closed)
+        self.stopped = False
+        self.interrupted = False
+
+    # ------------------------------------------------------------------ public
+
+    @property
+    def stats(self) -> RunStats:
+        """A consistent copy of the live statistics."""
+        with self._lock:
+            return copy.deepcopy(self._stats)
+
+    @property
+    def error(self) -> BaseException | None:
+        return self._error
+
+    def start(self, stop: threading.Event) -> None:
+        """Start the worker threads; ``stop`` ends the run early and is set when it ends."""
+        if self._started:
+            raise RuntimeError("Runner.start() called twice")
+        self._started = True
+        self._stop = stop
+        self._t0 = time.perf_counter()
+        targets = [
+            ("lightflow-capture", self._capture),
+            ("lightflow-process", self._process),
+            ("lightflow-sink", self._sink),
+            ("lightflow-stop", self._watch_stop),
+        ]
+        self._threads = [threading.Thread(target=f, name=n, daemon=True) for n, f in targets]
+        for t in self._threads:
+            t.start()
+
+    def join(self) -> RunStats:
+        """Wait for the workers; re-raise the first worker exception; return the final stats."""
+        for t in self._threads:
+            t.join()
+        if self._error is not None:
+            raise self._error
+        return self.stats
+
+    def run(self, stop: threading.Event | None = None) -> RunStats:
+        """Start, wait until the camera is exhausted or ``stop`` is set, and join.
+
+        Ctrl-C while waiting stops the run cleanly (sinks drained and closed)
+        and sets :attr:`interrupted` instead of raising.
+        """
+        stop = stop if stop is not None else threading.Event()
+        self.start(stop)
+        try:
+            # Thread.join is interruptible by Ctrl-C on the main thread
+            for t in self._threads:
+                t.join()
+        except KeyboardInterrupt:
+            self.interrupted = True
+            stop.set()
+        return self.join()
+
+    # ------------------------------------------------------------------ workers
+
+    def _fail(self, exc: BaseException) -> None:
+        with self._lock:
+            if self._error is None:
+                self._error = exc
+
+    def _watch_stop(self) -> None:
+        assert self._stop is not None
+        self._stop.wait()
+        if not self._ended.is_set():
+            self.stopped = True
+        self.camera.stop()  # frames() ends soon; the capture thread then ends the stream
+
+    def _capture(self) -> None:
+        q = self.frames_q
+        last_index: int | None = None
+        last_t: float | None = None
+        next_stats = 0.0
+        try:
+            for frame in self.camera.frames():
+                now = time.perf_counter()
+                nbytes = frame.image.nbytes
+                with self._lock:
+                    s = self._stats
+                    s.frames_in += 1
+                    if last_index is not None and frame.index > last_index + 1:
+                        s.camera_lost += frame.index - last_index - 1
+                    if last_t is not None and now > last_t:
+                        rate = nbytes / 2**20 / (now - last_t)
+                        s.mib_per_s = rate if s.mib_per_s == 0 else _ema(s.mib_per_s, rate)
+                last_index, last_t = frame.index, now
+                if now >= next_stats:
+                    next_stats = now + CAMERA_STATS_INTERVAL_S
+                    self._update_camera_stats()
+                if not q.put((frame, now)):
+                    break  # downstream is gone
+                self._update_drops()
+                if self._stop.is_set():
+                    break
+        except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
+            self._fail(exc)
+        finally:
+            self._update_camera_stats()
+            q.put_end()  # the downstream threads drain what they have and close the sinks
+
+    def _update_camera_stats(self) -> None:
+        try:
+            cam_stats = self.camera.stats()
+        except Exception:  # noqa: BLE001 - statistics are best effort, never end a run
+            return
+        with self._lock:
+            for k, v in cam_stats.items():
+                self._stats.extra[f"camera_{k}"] = float(v)
+
+    def _update_drops(self) -> None:
+        with self._lock:
+            s = self._stats
+            s.extra["dropped_frames_queue"] = float(self.frames_q.dropped)
+            s.extra["dropped_results_queue"] = float(self.results_q.dropped)
+            s.dropped = self.frames_q.dropped + self.results_q.dropped
+
+    def _process(self) -> None:
+        try:
+            while True:
+                item = self.frames_q.get()
+                if item is _END:
+                    break
+                frame, t_capture = item
+                result = self.pipeline.process(frame)
+                total = result.timings_ms.get("total")
+                if total is not None:
+                    with self._lock:
+                        e = self._stats.extra
+                        e["process_ms"] = _ema(e["process_ms"], total) if "process_ms" in e else total
+                if not self.results_q.put((result, t_capture)):
+                    break
+                self._update_drops()
+        except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
+            self._fail(exc)
+            self.frames_q.abort()  # unblock the capture thread
+            self._stop.set()
+        finally:
+            self.results_q.put_end()
+
+    def _sink(self) -> None:
+        last_done: float | None = None
+        try:
+            while True:
+                item = self.results_q.get()
+                if item is _END:
+                    break
+                result, t_capture = item
+                if self.on_result is not None:
+                    self.on_result(result)
+                now = time.perf_counter()
+                with self._lock:
+                    s = self._stats
+                    s.frames_done += 1
+                    lat = (now - t_capture) * 1e3
+                    s.latency_ms = lat if s.frames_done == 1 else _ema(s.latency_ms, lat)
+                    if last_done is not None and now > last_done:
+                        fps = 1.0 / (now - last_done)
+                        s.fps = fps if s.fps == 0 else _ema(s.fps, fps)
+                    s.extra["coverage"] = float(result.coverage)
+                    snapshot = copy.deepcopy(s)
+                last_done = now
+                for sink in self.sinks:
+                    sink.write(result, snapshot)
+                if self.on_stats is not None:
+                    self.on_stats(snapshot)
+        except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
+            self._fail(exc)
+            # nobody consumes any more: let the producers end at once
+            self.results_q.abort()
+            self.frames_q.abort()
+            self._stop.set()
+        finally:
+            self._close_sinks()
+            self._update_drops()
+            self._ended.set()
+            self._stop.set()  # ends the stop watcher and a pyglet loop waiting on it
+
+    def _close_sinks(self) -> None:
+        if self.sinks_closed:
+            return
+        self.sinks_closed = True
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except BaseException as exc:  # noqa: BLE001 - every sink still gets closed
+                self._fail(exc)
+
+
+def _ema(old: float, new: float) -> float:
+    return (1 - EMA_ALPHA) * old + EMA_ALPHA * new

@@ -1,0 +1,146 @@
+"""A one-line terminal status of a run, and the summary printed at its end.
+
+On a terminal the line is rewritten in place (``\\r``) at most a few times a
+second; when stderr is a file or a pipe (CI logs, ``2> log``) a full line is
+printed every few seconds instead, so logs stay readable.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections.abc import Iterable
+from typing import TextIO
+
+from lightflow.app.results import RunStats
+
+TTY_INTERVAL_S = 0.2
+LOG_INTERVAL_S = 5.0
+#: camera statistics worth showing, as (key in stats.extra, label)
+CAMERA_FIELDS = (
+    ("camera_underruns", "underruns"),
+    ("camera_failures", "failures"),
+    ("camera_missing_packets", "missing packets"),
+    ("camera_missing_frames", "missing frames"),
+    ("camera_bad_buffers", "bad buffers"),
+)
+
+
+def format_status(stats: RunStats, total: int | None = None) -> str:
+    """The status line text (no newline), e.g. ``frame 12/40  29.8 fps  ...``."""
+    done = f"frame {stats.frames_done}/{total}" if total else f"{stats.frames_done} frames"
+    parts = [done, f"{stats.fps:5.1f} fps", f"{stats.mib_per_s:6.1f} MiB/s"]
+    parts.append(f"latency {stats.latency_ms:4.0f} ms")
+    if "coverage" in stats.extra:
+        parts.append(f"coverage {100 * stats.extra['coverage']:3.0f}%")
+    e = stats.extra
+    parts.append(
+        f"drops {int(e.get('dropped_frames_queue', 0))} frames/"
+        f"{int(e.get('dropped_results_queue', 0))} results"
+    )
+    if e.get("recorder_dropped"):
+        parts.append(f"recorder dropped {int(e['recorder_dropped'])}")
+    if stats.camera_lost:
+        parts.append(f"camera lost {stats.camera_lost}")
+    for key, label in CAMERA_FIELDS:
+        if key in e:
+            parts.append(f"{label} {int(e[key])}")
+    return "  ".join(parts)
+
+
+def format_summary(
+    stats: RunStats, bad_frames: Iterable[str] = (), elapsed_s: float | None = None
+) -> list[str]:
+    """The end-of-run summary lines: processed, dropped, lost and bad frames."""
+    bad = list(bad_frames)
+    rate = f" in {elapsed_s:.1f} s" if elapsed_s else ""
+    lines = [
+        f"processed {stats.frames_done} of {stats.frames_in} frames{rate}; "
+        f"dropped {stats.dropped} (frames queue "
+        f"{int(stats.extra.get('dropped_frames_queue', 0))}, results queue "
+        f"{int(stats.extra.get('dropped_results_queue', 0))}); "
+        f"lost by the camera {stats.camera_lost}; bad frames {len(bad)}"
+    ]
+    for key, label in CAMERA_FIELDS:
+        if stats.extra.get(key):
+            lines.append(f"camera {label}: {int(stats.extra[key])}")
+    if bad:
+        lines.append(f"{len(bad)} bad frame(s) skipped:")
+        lines.extend(f"  {line}" for line in bad)
+    return lines
+
+
+class StatusLine:
+    """Shows :class:`RunStats` on one terminal line; thread-safe, throttles itself.
+
+    Parameters
+    ----------
+    stream : file, optional
+        Default ``sys.stderr``.
+    total : int, optional
+        Expected number of frames (shown as ``frame i/n``).
+    interval_s : float, optional
+        Minimum time between updates (default 0.2 s on a terminal, 5 s otherwise).
+    """
+
+    def __init__(
+        self,
+        stream: TextIO | None = None,
+        total: int | None = None,
+        interval_s: float | None = None,
+    ):
+        self.stream = stream if stream is not None else sys.stderr
+        try:
+            self.tty = self.stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+        self.total = total
+        self.interval_s = interval_s if interval_s is not None else (
+            TTY_INTERVAL_S if self.tty else LOG_INTERVAL_S
+        )
+        self._next = 0.0
+        self._width = 0
+        self._lock = threading.Lock()
+        self._t0 = time.perf_counter()
+        self.last: RunStats | None = None
+
+    def update(self, stats: RunStats, force: bool = False) -> None:
+        """Show ``stats`` if the last update is old enough (or ``force``)."""
+        now = time.perf_counter()
+        with self._lock:
+            self.last = stats
+            if not force and now < self._next:
+                return
+            self._next = now + self.interval_s
+            text = format_status(stats, self.total)
+            if self.tty:
+                pad = max(0, self._width - len(text))
+                self.stream.write("\r" + text + " " * pad)
+                self._width = len(text)
+            else:
+                self.stream.write(text + "\n")
+            self.stream.flush()
+
+    __call__ = update
+
+    def message(self, text: str) -> None:
+        """Print a full line without garbling the status line."""
+        with self._lock:
+            if self.tty and self._width:
+                self.stream.write("\r" + " " * self._width + "\r")
+                self._width = 0
+                self._next = 0.0
+            self.stream.write(text + "\n")
+            self.stream.flush()
+
+    def finish(self, stats: RunStats, bad_frames: Iterable[str] = ()) -> None:
+        """End the status line and print the summary."""
+        with self._lock:
+            if self.tty and self._width:
+                self.stream.write("\n")
+                self._width = 0
+            elapsed = time.perf_counter() - self._t0
+            for line in format_summary(stats, bad_frames, elapsed):
+                self.stream.write(line + "\n")
+            self.stream.flush()

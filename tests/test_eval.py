@@ -1,0 +1,192 @@
+"""Accuracy metrics, ``lightflow eval`` on simulated recordings, and the plot helper."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from lightflow.app.cli import main as cli_main
+from lightflow.app.commands.simulate import resolve_rig, simulate_recording
+from lightflow.app.evaluation import evaluate_frame, fit_plane, plane_residuals, pool_metrics
+from lightflow.app.geometry import camera_rays
+from lightflow.app.plot import Series, line_plot, nice_ticks
+from lightflow.app.recording import RecordingWriter
+from lightflow.drivers.base import Frame
+from lightflow.drivers.synthetic import GroundTruth
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def _truth(depth, object_id, lit, planar=False):
+    return GroundTruth(np.asarray(depth, np.float32), np.asarray(object_id, np.uint8),
+                       np.asarray(lit, np.uint8), planar)  # fmt: skip
+
+
+def test_coverage_and_off_object_counting():
+    nan = math.nan
+    truth = _truth(
+        [[1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 2.0, nan]],
+        [[2, 2, 2, 2], [3, 1, 1, 0]],
+        [[3, 3, 1, 3], [3, 3, 3, 0]],  # pixel (0, 2) is lit by one projector only
+    )
+    depth = np.array([[1.01, nan, 1.2, 0.97], [1.05, 1.0, nan, 1.5]], np.float32)
+    m = evaluate_frame(depth, truth, n_projectors=2)
+    # target: moving and lit by both = (0,0), (0,1), (0,3), (1,0); covered: all but (0,1)
+    assert (m.n_target, m.n_covered) == (4, 3)
+    assert m.coverage == pytest.approx(0.75)
+    # depth on 6 pixels, 2 of them off the moving objects (background (1,1), nothing (1,3))
+    assert (m.n_depth, m.n_off) == (6, 2)
+    assert m.off_object == pytest.approx(2 / 6)
+    # errors on moving pixels with depth: 0.01, 0.2 (single-lit still counts), 0.03, 0.05
+    assert sorted(m.errors.tolist()) == pytest.approx([0.01, 0.03, 0.05, 0.2], abs=1e-6)
+    assert m.median_error_m == pytest.approx(0.04, abs=1e-6)
+    assert m.mean_error_m == pytest.approx(0.0725, abs=1e-6)
+    assert m.p90_error_m == pytest.approx(0.05 + 0.7 * 0.15, abs=1e-6)
+    assert math.isnan(m.plane_rmse_m)  # not planar
+    # without n_projectors, "all projectors" is inferred from the bits present
+    assert evaluate_frame(depth, truth).n_target == 4
+
+
+def test_empty_estimate():
+    truth = _truth(np.ones((3, 3)), np.full((3, 3), 2), np.full((3, 3), 1), planar=True)
+    m = evaluate_frame(np.full((3, 3), np.nan, np.float32), truth, camera_rays_stub(3, 3))
+    assert m.coverage == 0.0 and m.off_object == 0.0 and m.n_depth == 0
+    assert math.isnan(m.median_error_m) and math.isnan(m.plane_rmse_m)
+
+
+def camera_rays_stub(h, w, f=100.0):
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([(xs - (w - 1) / 2) / f, (ys - (h - 1) / 2) / f, np.ones((h, w))], -1)
+
+
+def test_plane_rmse_of_checkerboard_noise_is_exact():
+    # a fronto-parallel plane at 0.8 m, depth alternately +-2 mm: the plane z = 0.8
+    # is the fit and every point is exactly 2 mm from it
+    h, w = 60, 80
+    rays = camera_rays_stub(h, w)
+    sign = np.where((np.add.outer(np.arange(h), np.arange(w)) % 2) == 0, 1.0, -1.0)
+    depth = (0.8 + 0.002 * sign).astype(np.float32)
+    truth = _truth(np.full((h, w), 0.8), np.full((h, w), 2), np.full((h, w), 3), planar=True)
+    m = evaluate_frame(depth, truth, rays)
+    assert m.plane_rmse_m == pytest.approx(0.002, rel=1e-3)
+    assert m.median_error_m == pytest.approx(0.002, rel=1e-3)
+    assert m.n_plane == h * w and m.coverage == 1.0
+
+
+def test_plane_fit_tilted_plane_with_noise_and_outliers():
+    rng = np.random.default_rng(3)
+    n = np.array([0.3, -0.2, -1.0])
+    n /= np.linalg.norm(n)
+    # plane through (0, 0, 0.75): n . x + d = 0
+    d = -n @ np.array([0.0, 0.0, 0.75])
+    uv = rng.uniform(-0.3, 0.3, (20000, 2))
+    e1 = np.cross(n, [0, 1, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    pts = np.array([0, 0, 0.75]) + uv[:, :1] * e1 + uv[:, 1:] * e2
+    noisy = pts + rng.normal(0, 0.003, (len(pts), 1)) * n
+    r = plane_residuals(noisy)
+    assert np.sqrt(np.mean(r**2)) == pytest.approx(0.003, rel=0.03)
+    # 5 % gross outliers 10 cm in front must not tilt the robust plane
+    bad = noisy.copy()
+    bad[:1000] += 0.1 * n
+    normal, offset = fit_plane(bad)
+    sign = np.sign(normal @ n)
+    assert abs(normal @ n) == pytest.approx(1.0, abs=1e-5)
+    assert sign * offset == pytest.approx(d, abs=5e-4)
+
+
+def test_pooling_weights_pixels():
+    a = evaluate_frame(np.full((1, 2), 1.1, np.float32),
+                       _truth(np.ones((1, 2)), [[2, 2]], [[1, 1]]))  # fmt: skip
+    b = evaluate_frame(np.array([[1.0, np.nan, 1.3, 1.0]], np.float32),
+                       _truth(np.ones((1, 4)), [[2, 2, 2, 1]], [[1, 1, 1, 1]]))  # fmt: skip
+    pooled = pool_metrics([a, b])
+    assert pooled["coverage"] == pytest.approx(4 / 5)  # 2/2 and 2/3
+    assert pooled["off_object"] == pytest.approx(1 / 5)
+    # errors 0.1, 0.1, 0.0, 0.3 pooled: median 0.1
+    assert pooled["median_error_m"] == pytest.approx(0.1, abs=1e-6)
+
+
+def test_nice_ticks():
+    assert nice_ticks(2, 40).tolist() == [0, 10, 20, 30, 40]
+    assert nice_ticks(0, 3.1).tolist() == [0, 1, 2, 3, 4]
+    ticks = nice_ticks(5, 5)
+    assert ticks[0] <= 5 <= ticks[-1] and len(ticks) >= 3
+
+
+def test_line_plot_size_and_content():
+    img = line_plot([Series("a", (1, 2, 3), (3, 1, math.nan))], title="t", xlabel="x",
+                    ylabel="y", size=(640, 400))  # fmt: skip
+    assert img.shape == (400, 640, 3) and img.dtype == np.uint8
+    # the series colour appears (drawn line), the background is white
+    assert np.any(np.all(img == (178, 114, 0), axis=-1))
+    assert (img == 255).mean() > 0.8
+
+
+# ----------------------------------------------------------------------------- eval CLI
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    """Two board recordings at 0.25 scale, 10 ms and 20 ms exposure, with their own LUT cache."""
+    base = tmp_path_factory.mktemp("eval")
+    rig = resolve_rig("two-projector").scaled(0.25)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LIGHTFLOW_CACHE", str(base / "cache"))
+        recs = []
+        for exposure in (0.01, 0.02):
+            out = base / f"board-{exposure * 1e3:g}ms"
+            simulate_recording(rig, "board", out, frames=2, exposure_s=exposure)
+            recs.append(out)
+        yield recs
+
+
+def test_eval_one_recording(recordings, tmp_path, capsys):
+    rec = recordings[1]
+    js = tmp_path / "m.json"
+    plot = tmp_path / "one.png"
+    assert cli_main(["eval", str(rec), "--json", str(js), "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split()[:3] == ["recording", "scene", "exposure"]
+    row = out[2].split()
+    assert row[:4] == [str(rec), "board", "20", "2"]
+    m = json.loads(js.read_text())["recordings"][0]
+    assert m["scene"] == "board" and m["frames"] == 2 and m["planar"] is True
+    assert m["exposure_s"] == pytest.approx(0.02)
+    # loose: the lead is still tuning the pipeline
+    assert m["median_error_m"] < 0.06
+    assert m["coverage"] > 0.05
+    assert m["off_object"] <= 0.02
+    assert 0 < m["plane_rmse_m"] < 0.06
+    assert len(m["per_frame"]) == 2 and "errors" not in m["per_frame"][0]
+    assert cv2.imread(str(plot)).shape == (560, 900, 3)
+
+
+def test_eval_two_exposures_draws_plot(recordings, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["eval", *map(str, recordings)]) == 0
+    out = capsys.readouterr().out
+    assert "plot written to eval.png" in out
+    rows = out.splitlines()[2:4]
+    assert [r.split()[2] for r in rows] == ["10", "20"]
+    png = Path(tmp_path / "eval.png")
+    assert png.stat().st_size > 5000
+    img = cv2.imread(str(png))
+    assert img.shape == (560, 900, 3)
+    assert (img != 255).any(axis=-1).mean() > 0.02  # axes, text and lines were drawn
+
+
+def test_eval_without_ground_truth_is_one_line(tmp_path, capsys):
+    rig = resolve_rig("two-projector").scaled(0.05)
+    rec = tmp_path / "captured"
+    with RecordingWriter(rec, rig, 0.02) as writer:
+        writer.write(Frame(0, 0.0, 0.02, np.zeros((60, 80, 3), np.uint8)))
+    assert cli_main(["eval", str(rec)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"lightflow: error: {rec}: no ground truth (ground_truth/ folder) — eval "
+                   "needs a simulated recording\n")  # fmt: skip
