@@ -69,6 +69,8 @@ def _crossing_left(x, j, level):
         return -1.0
     a = x[j - 1]
     b = x[j]
+    if not b > a:  # only on flat or NaN data
+        return -1.0
     return (j - 1) + (level - a) / (b - a)
 
 
@@ -81,6 +83,8 @@ def _crossing_right(x, j, level):
         return -1.0
     a = x[j]
     b = x[j + 1]
+    if not a > b:  # only on flat or NaN data
+        return -1.0
     return j + (a - level) / (a - b)
 
 

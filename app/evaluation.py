@@ -34,7 +34,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from lightflow.app.errors import ConfigError
 from lightflow.app.rig import Rig
 
@@ -159,9 +158,9 @@ def fit_plane(points: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, flo
         _, vecs = np.linalg.eigh(scatter)
         new_normal = vecs[:, 0]
         new_offset = -float(new_normal @ centre)
-        converged = abs(abs(new_normal @ normal) - 1) < 1e-12 and abs(
-            abs(new_offset) - abs(offset)
-        ) < 1e-12
+        converged = (
+            abs(abs(new_normal @ normal) - 1) < 1e-12 and abs(abs(new_offset) - abs(offset)) < 1e-12
+        )
         normal, offset = new_normal, new_offset
         r = pts @ normal + offset
         scale = _MAD_SCALE * float(np.median(np.abs(r)))

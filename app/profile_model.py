@@ -18,21 +18,28 @@ Everything is in units of sigma, so one table serves every rig.
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 import math
 
 import numba as nb
 import numpy as np
 
+from . import bands as _bands_module
+from .bands import _bands_in_row, _sliding_mid
+
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
-#: table axes (unit sigma): sweep L and line width w
-L_STEP = 0.125
-L_AXIS = np.arange(0.0, 96.0 + L_STEP, L_STEP)
-W_STEP = 0.125
-W_AXIS = np.arange(0.0, 24.0 + W_STEP, W_STEP)
-M_STEP = 0.125
-M_AXIS = np.arange(0.0, 100.0 + M_STEP, M_STEP)
+#: table axes: blur sigma, line width and sweep in camera pixels
+S_AXIS = np.arange(0.3, 2.7 + 1e-9, 0.15)
+W_STEP = 0.5
+W_AXIS = np.arange(0.0, 16.0 + 1e-9, W_STEP)
+L_STEP = 0.5
+L_AXIS = np.arange(0.0, 48.0 + 1e-9, L_STEP)
+M_STEP = 0.25
+M_AXIS = np.arange(0.0, 52.0 + 1e-9, M_STEP)
+PHASES = 4
 
 
 @nb.njit(cache=True, inline="always")
@@ -41,135 +48,211 @@ def _G(t):
     return t * 0.5 * (1.0 + math.erf(t * _INV_SQRT2)) + math.exp(-0.5 * t * t) * _INV_SQRT2PI
 
 
+@nb.njit(cache=True, inline="always")
+def _H(t):
+    """Antiderivative of _G: ((t^2 + 1) Phi(t) + t phi(t)) / 2."""
+    return 0.5 * (
+        (t * t + 1.0) * 0.5 * (1.0 + math.erf(t * _INV_SQRT2))
+        + t * math.exp(-0.5 * t * t) * _INV_SQRT2PI
+    )
+
+
 @nb.njit(cache=True)
 def profile(x, L, w):
-    """Band profile at ``x`` (sigma = 1, unnormalised): box(L) * box(w) * gauss(1)."""
+    """Band profile at ``x`` (sigma = 1; plateau 1 for L > w): box(L) * box(w)/w * gauss(1)."""
     a = 0.5 * L
-    b = 0.5 * max(w, 1e-6)
+    b = 0.5 * max(w, 1e-3)
     return (_G(x + a + b) - _G(x + a - b) - _G(x - a + b) + _G(x - a - b)) / (2.0 * b)
 
 
 @nb.njit(cache=True)
-def _crossing(L, w, level):
-    lo = 0.0
-    hi = 0.5 * (L + w) + 12.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        if profile(mid, L, w) >= level:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
+def pixel_value(d, L, w, sigma):
+    """Pixel-integrated profile of a band centred ``d`` pixels away (camera px units)."""
+    a = 0.5 * L
+    b = 0.5 * max(w, 1e-3)
+    s = sigma
+    total = 0.0
+    for sign, off in ((1.0, a + b), (-1.0, a - b), (-1.0, -a + b), (1.0, -a - b)):
+        total += sign * (_H((d + 0.5 + off) / s) - _H((d - 0.5 + off) / s))
+    return total * s * s / (2.0 * b)
 
 
 @nb.njit(cache=True)
-def measure(L, w):
-    """What the band detector reports for a band with unit blur: ``(m, r)``."""
-    top = profile(0.0, L, w)
-    x1 = _crossing(L, w, 0.5 * top)
-    n = 33
-    s = 0.0
-    for k in range(n):
-        s += profile(x1 * (-0.5 + k / (n - 1.0)), L, w)
-    plateau = s / n
-    x2 = _crossing(L, w, 0.5 * plateau)
-    x20 = _crossing(L, w, 0.2 * plateau)
-    return 2.0 * x2, x20 - x2
+def _simulate_detector(L, w, sigma, phase, out2):
+    """Run the real band detector on three identical bands; (m, r) of the middle one."""
+    gap = 3.0 * w + 8.0 * sigma + 10.0
+    B = L + gap
+    n = int(3.0 * B + 40.0)
+    x = np.empty(n)
+    c0 = 20.0 + phase
+    reach = 0.5 * (L + w) + 6.0 * sigma + 2.0
+    for j in range(n):
+        v = 0.0
+        for k in range(3):
+            d = j - (c0 + k * B)
+            if abs(d) < reach:  # the profile is zero (to 1e-9) further out
+                v += pixel_value(d, L, w, sigma)
+        x[j] = 5.0 + 100.0 * v
+    thr = np.empty(n)
+    _sliding_mid(x, int(2.2 * B) | 1, thr)
+    out = np.empty((8, 8))
+    ns = _bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, out)
+    out2[0] = np.nan
+    out2[1] = np.nan
+    for k in range(ns):
+        if abs(out[k, 0] - (c0 + B)) < 0.5 * B:
+            out2[0] = out[k, 1]
+            out2[1] = out[k, 7]
 
 
 @nb.njit(cache=True, parallel=True)
-def _measure_table(l_axis, w_axis, m_out, r_out):
-    for i in nb.prange(w_axis.shape[0]):
-        for j in range(l_axis.shape[0]):
-            m, r = measure(l_axis[j], w_axis[i])
-            m_out[i, j] = m
-            r_out[i, j] = r
+def _measure_table(s_axis, w_axis, l_axis, m_out, r_out):
+    ns, nw, nl = s_axis.shape[0], w_axis.shape[0], l_axis.shape[0]
+    for idx in nb.prange(ns * nw):
+        i = idx // nw
+        j = idx % nw
+        tmp = np.empty(2)
+        for k in range(nl):
+            sm = 0.0
+            sr = 0.0
+            cnt = 0
+            for p in range(PHASES):
+                _simulate_detector(l_axis[k], w_axis[j], s_axis[i], p / PHASES, tmp)
+                if np.isfinite(tmp[0]) and np.isfinite(tmp[1]):
+                    sm += tmp[0]
+                    sr += tmp[1]
+                    cnt += 1
+            m_out[i, j, k] = sm / cnt if cnt else np.nan
+            r_out[i, j, k] = sr / cnt if cnt else np.nan
 
 
 @nb.njit(cache=True, parallel=True)
 def _invert_table(m_tab, l_axis, m_axis, out):
-    """Per w row: L at each m of ``m_axis`` on the informative part of m(L)."""
-    nw, nl = m_tab.shape
-    for i in nb.prange(nw):
-        # informative: from the first L where dm/dL > 0.25 on
+    """Per (sigma, w): L at each m of ``m_axis`` on the informative part of m(L)."""
+    ns, nw, nl = m_tab.shape
+    for idx in nb.prange(ns * nw):
+        i = idx // nw
+        j = idx % nw
         first = nl
-        for j in range(nl - 1):
-            if (m_tab[i, j + 1] - m_tab[i, j]) / (l_axis[j + 1] - l_axis[j]) > 0.25:
-                first = j
+        for k in range(nl - 1):
+            a = m_tab[i, j, k]
+            b = m_tab[i, j, k + 1]
+            if np.isfinite(a) and np.isfinite(b) and (b - a) / (l_axis[k + 1] - l_axis[k]) > 0.25:
+                first = k
                 break
-        for k in range(m_axis.shape[0]):
-            out[i, k] = np.nan
-            mv = m_axis[k]
-            if first >= nl - 1 or mv < m_tab[i, first]:
+        for q in range(m_axis.shape[0]):
+            out[i, j, q] = np.nan
+            mv = m_axis[q]
+            if first >= nl - 1 or mv < m_tab[i, j, first]:
                 continue
-            for j in range(first, nl - 1):
-                a = m_tab[i, j]
-                b = m_tab[i, j + 1]
+            for k in range(first, nl - 1):
+                a = m_tab[i, j, k]
+                b = m_tab[i, j, k + 1]
                 if a <= mv <= b and b > a:
-                    out[i, k] = l_axis[j] + (mv - a) / (b - a) * (l_axis[j + 1] - l_axis[j])
+                    out[i, j, q] = l_axis[k] + (mv - a) / (b - a) * (l_axis[k + 1] - l_axis[k])
                     break
 
 
 @nb.njit(cache=True, parallel=True)
-def _bilinear(table, step0, step1, x0, x1, out):
-    n0, n1 = table.shape
-    flat0 = x0.ravel()
-    flat1 = x1.ravel()
+def _trilinear(table, ax0, step1, step2, x0, x1, x2, out):
+    n0, n1, n2 = table.shape
+    f0 = x0.ravel()
+    f1 = x1.ravel()
+    f2 = x2.ravel()
     res = out.ravel()
-    for k in nb.prange(flat0.shape[0]):
-        a = flat0[k] / step0
-        b = flat1[k] / step1
-        if not (a >= 0.0 and b >= 0.0 and a <= n0 - 1 and b <= n1 - 1):
+    lo0 = ax0[0]
+    st0 = ax0[1] - ax0[0]
+    for k in nb.prange(f0.shape[0]):
+        a = min(max((f0[k] - lo0) / st0, 0.0), n0 - 1.0)
+        b = f1[k] / step1
+        c = f2[k] / step2
+        if not (b >= 0.0 and c >= 0.0 and b <= n1 - 1 and c <= n2 - 1):
             res[k] = np.nan
             continue
         i = min(int(a), n0 - 2)
         j = min(int(b), n1 - 2)
+        q = min(int(c), n2 - 2)
         fa = a - i
         fb = b - j
-        res[k] = (
-            (1 - fa) * (1 - fb) * table[i, j]
-            + fa * (1 - fb) * table[i + 1, j]
-            + (1 - fa) * fb * table[i, j + 1]
-            + fa * fb * table[i + 1, j + 1]
-        )
+        fc = c - q
+        acc = 0.0
+        for di in range(2):
+            wa = fa if di else 1.0 - fa
+            for dj in range(2):
+                wb = fb if dj else 1.0 - fb
+                for dq in range(2):
+                    wc = fc if dq else 1.0 - fc
+                    acc += wa * wb * wc * table[i + di, j + dj, q + dq]
+        res[k] = acc
 
 
 class ProfileTables:
-    """Forward tables m(w, L), r(w, L) and the inverse L(w, m), unit sigma."""
+    """What the band detector reports, m(sigma, w, L) and r(sigma, w, L), and L(sigma, w, m).
+
+    Built by running the detector itself on exactly rendered, pixel-integrated
+    bands at several sub-pixel phases, so that sampling and interpolation
+    effects are part of the model.  Cached on disk (a few seconds to build).
+    """
 
     def __init__(self):
-        nw, nl = len(W_AXIS), len(L_AXIS)
-        self.m = np.empty((nw, nl))
-        self.r = np.empty((nw, nl))
-        _measure_table(L_AXIS, W_AXIS, self.m, self.r)
-        self.inverse = np.empty((nw, len(M_AXIS)))
-        _invert_table(self.m, L_AXIS, M_AXIS, self.inverse)
+        from .depth_model import lut_cache_dir  # the same cache folder as the LUTs
 
-    def true_length(self, m: np.ndarray, w: np.ndarray, sigma) -> np.ndarray:
+        # the tables model the detector's code: key them by its source
+        digest = hashlib.sha256(
+            inspect.getsource(_bands_module).encode()
+            + inspect.getsource(_simulate_detector.py_func).encode()
+        ).hexdigest()[:12]
+        path = lut_cache_dir() / f"profile-tables-{digest}.npz"
+        try:
+            with np.load(path) as d:
+                self.m, self.r, self.inverse = d["m"], d["r"], d["inverse"]
+            return
+        except (OSError, KeyError, ValueError):
+            pass
+        shape = (len(S_AXIS), len(W_AXIS), len(L_AXIS))
+        self.m = np.empty(shape)
+        self.r = np.empty(shape)
+        _measure_table(S_AXIS, W_AXIS, L_AXIS, self.m, self.r)
+        self.inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
+        _invert_table(self.m, L_AXIS, M_AXIS, self.inverse)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.name + ".tmp.npz")
+            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse)
+            tmp.replace(path)
+        except OSError:
+            pass  # an unwritable cache only costs the rebuild
+
+    @staticmethod
+    def _lookup(table, step1, step2, sigma, a, b):
+        shape = np.broadcast(sigma, a, b).shape
+        out = np.empty(shape)
+        args = [np.ascontiguousarray(np.broadcast_to(v, shape), dtype=np.float64)
+                for v in (sigma, a, b)]  # fmt: skip
+        _trilinear(table, S_AXIS, step1, step2, *args, out)
+        return out
+
+    def true_length(self, m, w, sigma) -> np.ndarray:
         """Sweep ``L`` from measured ``m``, line width ``w`` and blur ``sigma`` (camera px).
 
         NaN where the sweep is hidden in the line width and blur (static lines).
         """
-        out = np.empty(np.broadcast(m, w, sigma).shape)
-        m_n = np.ascontiguousarray(np.broadcast_to(m / sigma, out.shape), dtype=np.float64)
-        w_n = np.ascontiguousarray(np.broadcast_to(w / sigma, out.shape), dtype=np.float64)
-        _bilinear(self.inverse, W_STEP, M_STEP, w_n, m_n, out)
-        return out * sigma
+        return self._lookup(self.inverse, W_STEP, M_STEP, sigma, w, m)
 
-    def ramp(self, L: np.ndarray, w: np.ndarray, sigma) -> np.ndarray:
-        """Predicted 50->20 % ramp of a band (camera px)."""
-        out = np.empty(np.broadcast(L, w, sigma).shape)
-        l_n = np.ascontiguousarray(np.broadcast_to(L / sigma, out.shape), dtype=np.float64)
-        w_n = np.ascontiguousarray(np.broadcast_to(w / sigma, out.shape), dtype=np.float64)
-        _bilinear(self.r, W_STEP, L_STEP, w_n, l_n, out)
-        return out * sigma
+    def measured_width(self, L, w, sigma) -> np.ndarray:
+        """Forward model: the width at half height the detector reports."""
+        return self._lookup(self.m, W_STEP, L_STEP, sigma, w, L)
+
+    def ramp(self, L, w, sigma) -> np.ndarray:
+        """Forward model: the 50->20 % ramp the detector reports (camera px)."""
+        return self._lookup(self.r, W_STEP, L_STEP, sigma, w, L)
 
 
 _TABLES: ProfileTables | None = None
 
 
 def tables() -> ProfileTables:
-    """The shared tables (built once per process, about 0.2 s)."""
+    """The shared tables (loaded from the cache or built once)."""
     global _TABLES
     if _TABLES is None:
         _TABLES = ProfileTables()
@@ -204,10 +287,12 @@ def fit_blur(m, r, line, scale, max_pixels: int = 3000):
     t = tables()
     best, best_cost = None, np.inf
     spread = np.ptp(s2) > 0.15 * np.mean(s2)
-    a_grid = np.geomspace(0.02, 6.0, 24)
+    a_grid = np.geomspace(0.09, S_AXIS[-1] ** 2, 24)
     b_grid = np.concatenate([[0.0], np.geomspace(0.02, 4.0, 12)]) if spread else [0.0]
     for b in b_grid:
         for a in a_grid:
+            if np.sqrt(a + b * np.max(s2)) > S_AXIS[-1]:
+                continue
             sigma = np.sqrt(a + b * s2)
             L = t.true_length(m, line, sigma)
             pred = t.ramp(L, line, sigma)

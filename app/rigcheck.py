@@ -366,7 +366,9 @@ def check_rig(
     flat_fraction = np.count_nonzero(classes == FLAT) / n_lit if n_lit else 0.0
     coverage = float(np.mean([st.usable for st in stats]))
     overlap = float(np.mean([st.lit for st in stats]))
-    problem, warnings = _diagnose(rig, depths, depth_range, stats, flat_fraction, coverage, n_lit)
+    problem, warnings = _diagnose(
+        rig, depths, depth_range, stats, flat_fraction, coverage, n_lit, max_error_m
+    )
     report = RigReport(
         depths=depths,
         stride=stride,
@@ -444,7 +446,7 @@ def _geometry_hint(rig: Rig) -> tuple[str, str, str]:
     )
 
 
-def _diagnose(rig, depths, depth_range, stats, flat_fraction, coverage, n_lit):
+def _diagnose(rig, depths, depth_range, stats, flat_fraction, coverage, n_lit, max_error_m):
     """``(problem or None, warnings)`` from the numbers."""
     warnings: list[str] = []
     field_, cause, advice = _geometry_hint(rig)
@@ -468,8 +470,13 @@ def _diagnose(rig, depths, depth_range, stats, flat_fraction, coverage, n_lit):
         )
         return problem, ["check the projector poses: h(z) must change monotonically with depth"]
 
-    if flat_fraction > 0.3:
-        warnings.append(f"h(z) is flat over {100 * flat_fraction:.0f} % of the image; {advice}")
+    flat_at = [st for st in stats if st.flat > 0.3 * max(st.lit, 1e-12)]
+    if flat_at:
+        where = ", ".join(f"{st.z:g} m ({100 * st.flat / st.lit:.0f} %)" for st in flat_at)
+        warnings.append(
+            f"h(z) is too flat (expected error above {1000 * max_error_m:g} mm) over much of "
+            f"the lit image at {where}; {advice}"
+        )
     for st in stats:
         lit = max(st.lit, 1e-12)
         if st.not_invertible / lit > 0.2:

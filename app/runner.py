@@ -123,7 +123,13 @@ class Runner:
     lossless : bool
         Block instead of dropping when a queue is full (offline replay).
     on_result : callable, optional
-        ``on_result(result)`` on the sink thread before the sinks (e.g. auto exposure).
+        ``on_result(result)`` on the sink thread before the sinks.
+    recorder : RecordingWriter, optional
+        Gets *every* frame the camera delivers, on the capture thread, before
+        any queue can drop it (so a recording is complete even when the
+        pipeline falls behind); closed by the capture thread at the end.
+    max_frames : int, optional
+        End the run after this many frames from the camera.
 
     Examples
     --------
@@ -148,6 +154,8 @@ class Runner:
         on_stats: Callable[[RunStats], None] | None = None,
         lossless: bool = False,
         on_result: Callable[[FrameResult], None] | None = None,
+        recorder=None,
+        max_frames: int | None = None,
     ):
         self.camera = camera
         self.pipeline = pipeline
@@ -155,6 +163,8 @@ class Runner:
         self.on_stats = on_stats
         self.on_result = on_result
         self.lossless = lossless
+        self.recorder = recorder
+        self.max_frames = max_frames
         self.frames_q = DropOldestQueue(queue_size, lossless, "frames")
         self.results_q = DropOldestQueue(queue_size, lossless, "results")
         self._stats = RunStats()
@@ -242,8 +252,13 @@ class Runner:
         last_index: int | None = None
         last_t: float | None = None
         next_stats = 0.0
+        count = 0
+        frames = None
         try:
-            for frame in self.camera.frames():
+            if self.max_frames is not None and self.max_frames <= 0:
+                return
+            frames = self.camera.frames()
+            for frame in frames:
                 now = time.perf_counter()
                 nbytes = frame.image.nbytes
                 with self._lock:
@@ -258,16 +273,30 @@ class Runner:
                 if now >= next_stats:
                     next_stats = now + CAMERA_STATS_INTERVAL_S
                     self._update_camera_stats()
+                if self.recorder is not None:
+                    self.recorder.write(frame)
+                    self._update_recorder_stats()
                 if not q.put((frame, now)):
                     break  # downstream is gone
                 self._update_drops()
                 if self._stop.is_set():
                     break
+                if self.max_frames is not None and count + 1 >= self.max_frames:
+                    break
+                count += 1
+            if frames is not None and hasattr(frames, "close"):
+                frames.close()  # on this thread: a live driver stops streaming here
         except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
             self._fail(exc)
         finally:
             self._update_camera_stats()
             q.put_end()  # the downstream threads drain what they have and close the sinks
+            if self.recorder is not None:
+                try:
+                    self.recorder.close()  # writes what is queued, then recording.json
+                except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
+                    self._fail(exc)
+                self._update_recorder_stats()
 
     def _update_camera_stats(self) -> None:
         try:
@@ -277,6 +306,12 @@ class Runner:
         with self._lock:
             for k, v in cam_stats.items():
                 self._stats.extra[f"camera_{k}"] = float(v)
+
+    def _update_recorder_stats(self) -> None:
+        rs = self.recorder.stats()
+        with self._lock:
+            self._stats.extra["recorder_written"] = float(rs["written"])
+            self._stats.extra["recorder_dropped"] = float(rs["dropped"])
 
     def _update_drops(self) -> None:
         with self._lock:
@@ -297,7 +332,8 @@ class Runner:
                 if total is not None:
                     with self._lock:
                         e = self._stats.extra
-                        e["process_ms"] = _ema(e["process_ms"], total) if "process_ms" in e else total
+                        old = e.get("process_ms")
+                        e["process_ms"] = total if old is None else _ema(old, total)
                 if not self.results_q.put((result, t_capture)):
                     break
                 self._update_drops()

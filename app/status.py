@@ -144,3 +144,40 @@ class StatusLine:
             for line in format_summary(stats, bad_frames, elapsed):
                 self.stream.write(line + "\n")
             self.stream.flush()
+
+
+class Progress:
+    """``progress(done, total)`` callback printing a percentage (e.g. while a LUT is built).
+
+    On a terminal the line is rewritten in place; otherwise one line per 25 %.
+    """
+
+    def __init__(self, label: str, stream: TextIO | None = None):
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        try:
+            self.tty = self.stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+        self._shown = -1
+        self._started = False
+
+    def __call__(self, done: float, total: float) -> None:
+        pct = int(100 * done / total) if total else 100
+        step = 1 if self.tty else 25
+        if pct // step == self._shown // step and pct != 100:
+            return
+        if pct == self._shown:
+            return
+        if not self._started:
+            self._started = True
+            if not self.tty:
+                self.stream.write(f"{self.label} ...\n")
+        self._shown = pct
+        if self.tty:
+            self.stream.write(f"\r{self.label}: {pct:3d}%")
+            if pct >= 100:
+                self.stream.write("\n")
+        else:
+            self.stream.write(f"{self.label}: {pct}%\n")
+        self.stream.flush()

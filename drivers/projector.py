@@ -83,24 +83,20 @@ def _pyglet():
     return pyglet
 
 
-def _display_name(display: str | None) -> str:
-    return display or os.environ.get("DISPLAY") or "(DISPLAY not set)"
-
-
 def _open_display(display: str | None):
     """The pyglet display object for ``display`` (``None``: ``$DISPLAY``)."""
-    try:
-        pyglet = _pyglet()
-        from pyglet.display.xlib import NoSuchDisplayException
+    pyglet = _pyglet()
+    from pyglet.display.xlib import NoSuchDisplayException
 
+    name = display or os.environ.get("DISPLAY")
+    if not name:
+        raise DriverError("X display: DISPLAY is not set and no display was given (e.g. :0)")
+    try:
         if display is None:
             return pyglet.display.get_display()
         return pyglet.display.Display(name=display)
     except NoSuchDisplayException:
-        raise DriverError(
-            f"X display {_display_name(display)}: cannot connect "
-            "(is the X server running and DISPLAY set?)"
-        ) from None
+        raise DriverError(f"X display {name}: cannot connect (is the X server running?)") from None
 
 
 def _screens(pdisplay) -> list[tuple[ScreenInfo, Any]]:
@@ -150,7 +146,7 @@ def resolve_screen(selector: ScreenSelector, screens: Sequence[ScreenInfo], disp
             return s
     avail = ", ".join(f"{s.index}={s.name} {s.geometry}" for s in screens) or "none"
     raise DriverError(
-        f"X display {_display_name(display)}: no screen {selector!r} "
+        f"X display {display or os.environ.get('DISPLAY')}: no screen {selector!r} "
         f"(available: {avail})"
     )
 
@@ -192,6 +188,7 @@ class _Slot:
         self.texture = None
         # guarded by ProjectorWindows._cond
         self.pending: np.ndarray | None = image
+        self.current = image  # last presented, shown again if the windows are re-opened
         self.requested = 1
         self.presented = 0
 
@@ -289,6 +286,10 @@ class ProjectorWindows(PatternOutput):
             used[info.index] = slot.name
             self._check_size(slot, info)
             slot.screen = info
+        with self._cond:
+            for slot in self._slots.values():
+                if slot.pending is None:
+                    slot.pending = slot.current
         try:
             self._waker = _make_waker(self)
             for slot in self._slots.values():
@@ -453,6 +454,7 @@ class ProjectorWindows(PatternOutput):
         self._upload(slot, image)
         self._draw(slot)
         with self._cond:
+            slot.current = image
             slot.presented = max(slot.presented, seq)
             self._cond.notify_all()
 

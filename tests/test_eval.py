@@ -12,7 +12,6 @@ import pytest
 from lightflow.app.cli import main as cli_main
 from lightflow.app.commands.simulate import resolve_rig, simulate_recording
 from lightflow.app.evaluation import evaluate_frame, fit_plane, plane_residuals, pool_metrics
-from lightflow.app.geometry import camera_rays
 from lightflow.app.plot import Series, line_plot, nice_ticks
 from lightflow.app.recording import RecordingWriter
 from lightflow.drivers.base import Frame

@@ -275,6 +275,22 @@ def test_cli_project_wrong_screen_count_exits_2(xorg2):
     )
 
 
+def test_cli_project_unreachable_display_exits_2(tmp_path):
+    # a display number no server here uses
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "DISPLAY": ":31999"}
+    proc = cli("project", str(RIGS / "two-projector.json"), "--screens", "0,1", env=env)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    assert err == "lightflow: error: X display :31999: cannot connect (is the X server running?)\n"
+    proc = cli("project", str(RIGS / "two-projector.json"), "--screens", "0,1",
+               env={k: v for k, v in env.items() if k != "DISPLAY"})
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2
+    assert err == (
+        "lightflow: error: X display: DISPLAY is not set and no display was given (e.g. :0)\n"
+    )
+
+
 def test_cli_project_help_mentions_options():
     proc = cli("project", "--help")
     out, _ = proc.communicate(timeout=30)

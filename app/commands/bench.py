@@ -7,7 +7,6 @@ import sys
 import time
 
 import numpy as np
-
 from lightflow.app.errors import ConfigError
 
 DESCRIPTION = """\
@@ -33,16 +32,30 @@ def register(subparsers) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--rig", default="two-projector", metavar="RIG",
-                   help="rig file or example rig name (default: two-projector)")
-    p.add_argument("--scene", default="board", choices=list(SCENES), metavar="NAME",
-                   help=f"scene to render ({', '.join(SCENES)}; default: board)")
-    p.add_argument("--frames", type=int, default=20, metavar="N",
-                   help="timed process() calls (default: 20)")
-    p.add_argument("--stride", type=int, default=None, choices=(1, 2, 4),
-                   help="analysis grid stride (default: the pipeline's)")
-    p.add_argument("--recorder", action="store_true",
-                   help="also benchmark the recording writer")
+    p.add_argument(
+        "--rig",
+        default="two-projector",
+        metavar="RIG",
+        help="rig file or example rig name (default: two-projector)",
+    )
+    p.add_argument(
+        "--scene",
+        default="board",
+        choices=list(SCENES),
+        metavar="NAME",
+        help=f"scene to render ({', '.join(SCENES)}; default: board)",
+    )
+    p.add_argument(
+        "--frames", type=int, default=20, metavar="N", help="timed process() calls (default: 20)"
+    )
+    p.add_argument(
+        "--stride",
+        type=int,
+        default=None,
+        choices=(1, 2, 4),
+        help="analysis grid stride (default: the pipeline's)",
+    )
+    p.add_argument("--recorder", action="store_true", help="also benchmark the recording writer")
     p.set_defaults(func=run)
 
 
@@ -79,8 +92,10 @@ def run(args: argparse.Namespace) -> int:
     rig = resolve_rig(args.rig)
     cam = rig.camera
     config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
-    print(f"rig {args.rig}: camera {cam.width}x{cam.height}, {len(rig.projectors)} projector(s),"
-          f" scene {args.scene}, stride {config.stride}")
+    print(
+        f"rig {args.rig}: camera {cam.width}x{cam.height}, {len(rig.projectors)} projector(s),"
+        f" scene {args.scene}, stride {config.stride}"
+    )
     n_render = 2
     camera = SyntheticCamera(rig, args.scene, frames=n_render)
     frames = []
@@ -107,8 +122,10 @@ def run(args: argparse.Namespace) -> int:
     for line in stage_table(timings, wall):
         print(line)
     med = float(np.median(wall))
-    print(f"\n{1e3 / med:.1f} frames/s (median wall time {med:.1f} ms over {args.frames} frames,"
-          f" {sum(wall) / 1e3:.2f} s in all)")
+    print(
+        f"\n{1e3 / med:.1f} frames/s (median wall time {med:.1f} ms over {args.frames} frames,"
+        f" {sum(wall) / 1e3:.2f} s in all)"
+    )
     if args.recorder:
         _run_recorder()
     return 0
@@ -121,5 +138,7 @@ def _run_recorder() -> None:
     print(f"\nrecorder: 1600x1200 RGB PNG offered at 30 fps for {seconds:g} s ...", flush=True)
     r = benchmark_recorder(1600, 1200, 30.0, seconds)
     print(f"  written  {r['written']:.0f} of {r['offered']:.0f} frames, dropped {r['dropped']:.0f}")
-    print(f"  rate     {r['fps']:.1f} frames/s, {r['mib_per_s']:.1f} MiB/s "
-          f"({r['mib_per_frame']:.2f} MiB per frame)")
+    print(
+        f"  rate     {r['fps']:.1f} frames/s, {r['mib_per_s']:.1f} MiB/s "
+        f"({r['mib_per_frame']:.2f} MiB per frame)"
+    )

@@ -38,15 +38,24 @@ def register(subparsers) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("recordings", nargs="+", type=Path, metavar="REC",
-                   help="simulated recording folder(s)")
-    p.add_argument("--plot", type=Path, metavar="FILE.png",
-                   help="error-against-exposure plot (default with several recordings: eval.png)")
-    p.add_argument("--stride", type=int, default=None, choices=(1, 2, 4),
-                   help="analysis grid stride of the pipeline (default: the pipeline's)")
+    p.add_argument(
+        "recordings", nargs="+", type=Path, metavar="REC", help="simulated recording folder(s)"
+    )
+    p.add_argument(
+        "--plot",
+        type=Path,
+        metavar="FILE.png",
+        help="error-against-exposure plot (default with several recordings: eval.png)",
+    )
+    p.add_argument(
+        "--stride",
+        type=int,
+        default=None,
+        choices=(1, 2, 4),
+        help="analysis grid stride of the pipeline (default: the pipeline's)",
+    )
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the metrics as JSON")
-    p.add_argument("--rig", metavar="RIG",
-                   help="rig file overriding the recordings' embedded rig")
+    p.add_argument("--rig", metavar="RIG", help="rig file overriding the recordings' embedded rig")
     p.set_defaults(func=run)
 
 
@@ -79,9 +88,8 @@ def format_table(metrics) -> list[str]:
 
     def line(cells):
         # names left-aligned, numbers right-aligned
-        return "  ".join(
-            c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths))
-        ).rstrip()
+        pairs = enumerate(zip(cells, widths, strict=True))
+        return "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in pairs).rstrip()
 
     return [line(head), "  ".join("-" * w for w in widths), *(line(r) for r in rows)]
 
@@ -94,11 +102,13 @@ def plot_error_vs_exposure(metrics, path: Path) -> None:
     for scene in dict.fromkeys(m.scene for m in metrics):
         ms = sorted((m for m in metrics if m.scene == scene), key=lambda m: m.exposure_s)
         x = tuple(m.exposure_s * 1e3 for m in ms)
-        series.append(Series(f"median error ({scene})", x, tuple(m.median_error_m * 1e3
-                                                                 for m in ms)))
+        series.append(
+            Series(f"median error ({scene})", x, tuple(m.median_error_m * 1e3 for m in ms))
+        )
         if any(m.planar for m in ms):
-            series.append(Series(f"plane RMSE ({scene})", x, tuple(m.plane_rmse_m * 1e3
-                                                                   for m in ms)))
+            series.append(
+                Series(f"plane RMSE ({scene})", x, tuple(m.plane_rmse_m * 1e3 for m in ms))
+            )
     img = line_plot(
         series,
         title="Depth error against exposure (synthetic ground truth)",

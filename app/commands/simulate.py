@@ -37,7 +37,7 @@ REC/ground_truth/scene.json; `lightflow eval REC` scores the pipeline on it.
 Scenes (name, nominal exposure, description):
 {_scene_lines()}
 
-Rigs: a rig file, or the example rigs {' and '.join(EXAMPLE_RIGS)}.
+Rigs: a rig file, or the example rigs {" and ".join(EXAMPLE_RIGS)}.
 
 With --calibration, renders a calibration session instead (formats.md section
 4): a checkerboard in --poses poses, each projector showing the Gray-code
@@ -58,27 +58,65 @@ def register(subparsers) -> None:
         description=_description(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--scene", choices=list(SCENES), metavar="NAME",
-                   help="built-in scene (listed above)")
-    p.add_argument("--rig", default="two-projector", metavar="RIG",
-                   help="rig file or example rig name (default: two-projector)")
-    p.add_argument("--exposure", type=float, metavar="S",
-                   help="exposure in seconds (default: the scene's nominal exposure)")
-    p.add_argument("--frames", type=int, default=10, metavar="N",
-                   help="number of frames (default: 10)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR",
-                   help="recording folder (or calibration session folder) to create")
-    p.add_argument("--scale", type=float, default=1.0, metavar="F",
-                   help="scale the camera resolution (e.g. 0.25 for quick tests; default: 1)")
-    p.add_argument("--fps", type=float, default=30.0, metavar="F",
-                   help="frame rate: exposure start times are i / fps (default: 30)")
+    p.add_argument(
+        "--scene", choices=list(SCENES), metavar="NAME", help="built-in scene (listed above)"
+    )
+    p.add_argument(
+        "--rig",
+        default="two-projector",
+        metavar="RIG",
+        help="rig file or example rig name (default: two-projector)",
+    )
+    p.add_argument(
+        "--exposure",
+        type=float,
+        metavar="S",
+        help="exposure in seconds (default: the scene's nominal exposure)",
+    )
+    p.add_argument(
+        "--frames", type=int, default=10, metavar="N", help="number of frames (default: 10)"
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="recording folder (or calibration session folder) to create",
+    )
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="scale the camera resolution (e.g. 0.25 for quick tests; default: 1)",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=30.0,
+        metavar="F",
+        help="frame rate: exposure start times are i / fps (default: 30)",
+    )
     p.add_argument("--seed", type=int, default=0, metavar="N", help="noise seed (default: 0)")
-    p.add_argument("--bit-depth", type=int, choices=(8, 16), default=8,
-                   help="bits per channel of the PNG frames (default: 8)")
-    p.add_argument("--calibration", action="store_true",
-                   help="render a calibration session instead of a recording")
-    p.add_argument("--poses", type=int, default=6, metavar="N",
-                   help="board poses of a calibration session (default: 6)")
+    p.add_argument(
+        "--bit-depth",
+        type=int,
+        choices=(8, 16),
+        default=8,
+        help="bits per channel of the PNG frames (default: 8)",
+    )
+    p.add_argument(
+        "--calibration",
+        action="store_true",
+        help="render a calibration session instead of a recording",
+    )
+    p.add_argument(
+        "--poses",
+        type=int,
+        default=6,
+        metavar="N",
+        help="board poses of a calibration session (default: 6)",
+    )
     p.set_defaults(func=run)
 
 
@@ -104,8 +142,10 @@ def _scaled(rig: Rig, scale: float) -> Rig:
         return rig
     small = rig.scaled(scale)
     if small.camera.width < 16 or small.camera.height < 16:
-        raise ConfigError(f"--scale {scale:g}: camera of {small.camera.width}x"
-                          f"{small.camera.height} px is too small")
+        raise ConfigError(
+            f"--scale {scale:g}: camera of {small.camera.width}x"
+            f"{small.camera.height} px is too small"
+        )
     return small
 
 
@@ -209,11 +249,18 @@ def _run_calibration(args: argparse.Namespace, rig: Rig) -> int:
     if (args.out / "session.json").exists():
         raise ConfigError(f"{args.out}: already holds a calibration session, choose a new folder")
     try:
-        session = simulate_session(rig, args.poses, args.out, seed=args.seed,
-                                   progress=lambda i, n: _progress("simulate", i, n))
+        session = simulate_session(
+            rig,
+            args.poses,
+            args.out,
+            seed=args.seed,
+            progress=lambda i, n: _progress("simulate", i, n),
+        )
     except ValueError as exc:  # no usable board pose for this rig
         raise ConfigError(f"--rig {args.rig}: {exc}") from None
     n = len(session.poses)
-    print(f"{args.out}: calibration session of {n} pose{'s' if n != 1 else ''}, "
-          f"{len(rig.projectors)} projector(s); ground truth in {args.out}/ground_truth.json")
+    print(
+        f"{args.out}: calibration session of {n} pose{'s' if n != 1 else ''}, "
+        f"{len(rig.projectors)} projector(s); ground truth in {args.out}/ground_truth.json"
+    )
     return 0

@@ -1,0 +1,189 @@
+"""``lightflow capture``: live depth from a camera while the projectors show the patterns."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+
+from lightflow.app.errors import ConfigError
+
+from .replay import (
+    add_output_options,
+    add_pipeline_options,
+    build_sinks,
+    close_all,
+    describe_outputs,
+    make_pipeline,
+)
+
+HELP = "capture live: camera -> depth -> Rerun/files, optionally showing the patterns"
+
+DESCRIPTION = """\
+Capture frames from a camera, compute depth live and send it to Rerun and/or
+files, optionally recording the raw frames.  The camera is set to the rig's
+image size and to the exposure given (the value the camera really uses is read
+back and printed).  `--exposure auto` first adjusts the exposure from the
+measured band lengths (long bands, clearly shorter than the line interval)
+and says what it chose and why; the exposure then stays fixed for the run so
+that a recording has one exposure.
+
+With --screens, the rig's patterns are shown fullscreen on those screens for
+the whole run (as `lightflow project` does).  Ctrl-C, Esc in a pattern window
+or closing it stops cleanly: queued frames are finished and every output,
+including the recording, is complete.  When processing falls behind, the
+oldest frames are dropped (counted in the status line); --record still gets
+every frame the camera delivers.
+
+Cameras: aravis:ID|ADDRESS, v4l2:/dev/videoN, synthetic:SCENE (rendered, no
+hardware needed), replay:REC (a recording played as a camera)."""
+
+EPILOG = """\
+examples:
+  lightflow capture --camera aravis:192.168.1.20 --rig rig.json --screens 1,2 \\
+      --exposure auto --record rec/ --spawn
+  lightflow capture --camera v4l2:/dev/video0 --rig rig.json --exposure 8 --rrd out/live.rrd
+  lightflow capture --camera synthetic:ball --rig app/rigs/two-projector.json \\
+      --frames 30 --rrd out/ball.rrd --record out/ball-rec"""
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "capture",
+        help=HELP,
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--camera", required=True, metavar="URI",
+                   help="aravis:ID|ADDRESS, v4l2:/dev/videoN, synthetic:SCENE or replay:REC")
+    p.add_argument("--rig", metavar="RIG",
+                   help="rig file (required, except for replay: which carries its rig)")
+    p.add_argument("--screens", metavar="S1[,S2]",
+                   help="show each projector's pattern on these screens (see lightflow project)")
+    p.add_argument("--display", metavar=":N", help="X display for --screens (default: $DISPLAY)")
+    p.add_argument("--exposure", metavar="MS|auto",
+                   help="exposure in milliseconds, or auto (default: leave the camera's)")
+    p.add_argument("--record", metavar="DIR", help="also record the raw frames into a new folder")
+    p.add_argument("--frames", type=int, metavar="N", help="stop after N frames (default: run "
+                   "until Ctrl-C or the camera ends)")
+    p.add_argument("--queue-size", type=int, default=4, metavar="N",
+                   help="frames buffered between the threads (default 4)")
+    p.add_argument("--lossless", action="store_true",
+                   help="block instead of dropping when processing falls behind")
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="frame rate of a synthetic: camera (default 30)")
+    add_output_options(p)
+    add_pipeline_options(p)
+    p.set_defaults(func=run)
+
+
+def parse_exposure(text: str | None) -> float | str | None:
+    """``auto``, seconds from a number of milliseconds, or None."""
+    if text is None or text == "auto":
+        return text
+    try:
+        ms = float(text)
+    except ValueError:
+        raise ConfigError(f"--exposure: expected milliseconds or 'auto', got {text!r}") from None
+    if not ms > 0:
+        raise ConfigError(f"--exposure: expected a positive number of milliseconds, got {text}")
+    return ms / 1e3
+
+
+def run(args: argparse.Namespace) -> int:
+    from lightflow.app.exposure import BlurAwareExposure, settle_exposure
+    from lightflow.app.recording import RecordingWriter
+    from lightflow.app.rig import load_rig
+    from lightflow.app.runner import Runner
+    from lightflow.app.status import StatusLine
+    from lightflow.drivers import open_camera
+
+    exposure = parse_exposure(args.exposure)
+    if args.frames is not None and args.frames <= 0:
+        raise ConfigError(f"--frames: expected a positive number, got {args.frames}")
+    scheme = args.camera.partition(":")[0]
+    if args.rig is None and scheme != "replay":
+        raise ConfigError("--rig: required with this camera (the rig file, rig.json)")
+    rig = load_rig(args.rig) if args.rig else None
+    opts = {}
+    if scheme == "synthetic":
+        opts = {"frames": args.frames, "fps": args.fps}
+    camera = open_camera(args.camera, rig, **opts)
+    rig = rig or camera.rig
+    patterns = _pattern_output(args, rig)  # before the camera: a bad --screens fails fast
+
+    with camera:
+        w, h = rig.camera.width, rig.camera.height
+        camera.set_size(w, h)
+        print(f"camera {camera.uri}: {w}x{h}", flush=True)
+        pipeline = make_pipeline(rig, args)
+        if exposure == "auto":
+            controller = BlurAwareExposure(max_s=1.0 / args.fps)
+            chosen, decisions = settle_exposure(camera, pipeline, controller, log=print)
+            why = decisions[-1].reason if decisions else "no frame to measure"
+            print(f"exposure (auto): {chosen * 1e3:.3g} ms ({why})", flush=True)
+        elif exposure is not None:
+            got = camera.set_exposure(exposure)
+            print(f"exposure: asked {exposure * 1e3:.3g} ms, camera uses {got * 1e3:.3g} ms",
+                  flush=True)
+        else:
+            print(f"exposure: {camera.exposure_s * 1e3:.3g} ms (the camera's)", flush=True)
+        sinks = build_sinks(args, rig)
+        try:
+            recorder = (
+                RecordingWriter(args.record, rig, camera.exposure_s) if args.record else None
+            )
+        except BaseException:
+            close_all(sinks)
+            raise
+        status = StatusLine(total=args.frames)
+        runner = Runner(
+            camera, pipeline, sinks, queue_size=args.queue_size, on_stats=status,
+            lossless=args.lossless, recorder=recorder, max_frames=args.frames,
+        )  # fmt: skip
+        stop = threading.Event()
+        print("capturing; Ctrl-C to stop", flush=True)
+        if patterns is None:
+            stats = runner.run(stop)
+        else:
+            stats = _run_with_patterns(runner, patterns, stop)
+    status.finish(stats)
+    describe_outputs(sinks)
+    if recorder is not None:
+        dropped = f", {recorder.dropped} DROPPED (disk too slow)" if recorder.dropped else ""
+        print(f"recording: {recorder.written} frames in {args.record}{dropped}")
+    if runner.stopped or runner.interrupted:
+        print("stopped; every output is complete", file=sys.stderr)
+    return 0
+
+
+def _pattern_output(args: argparse.Namespace, rig):
+    if not args.screens:
+        return None
+    from lightflow.app.patterns import pattern_image
+    from lightflow.drivers.projector import ProjectorWindows
+
+    from .project import parse_screens
+
+    selectors = parse_screens(args.screens, [p.name for p in rig.projectors])
+    return ProjectorWindows(
+        [(p.name, s, pattern_image(p)) for p, s in zip(rig.projectors, selectors, strict=True)],
+        display=args.display,
+    )
+
+
+def _run_with_patterns(runner, windows, stop: threading.Event):
+    """pyglet keeps the main thread; the workers run meanwhile; either side can stop both."""
+    with windows:
+        for name, screen in windows.placements:
+            print(f"projector {name} -> {screen.describe()}", flush=True)
+        runner.start(stop)
+        try:
+            windows.run(stop)  # returns when stop is set: window closed, Esc, or run ended
+        except KeyboardInterrupt:
+            runner.interrupted = True
+        finally:
+            stop.set()
+            stats = runner.join()
+    return stats
