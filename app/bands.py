@@ -49,15 +49,15 @@ class BandParams:
         Largest difference between the two ramp widths of one band.
     min_gap_px : float
         Flat background needed between the supports of neighbouring bands.
-    vertical_half : int
-        Rows averaged on each side of a grid row (along the lines) against noise.
+    vertical_extra : int
+        Rows averaged beyond the grid cell on each side (along the lines), against noise.
     """
 
     min_contrast: float = 0.025
     interval_tolerance: float = 0.2
     symmetry_tolerance_px: float = 1.5
     min_gap_px: float = 1.0
-    vertical_half: int = 1
+    vertical_extra: int = 0
 
 
 @nb.njit(cache=True, inline="always")
@@ -120,20 +120,25 @@ def _sliding_mid(x, win, out):
 
 
 @nb.njit(cache=True)
-def _row_signal(img, y, weights, vhalf, out):
+def _row_signals(img, y0, y1, weights, out):
+    """Box-average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``."""
     h, w = img.shape[0], img.shape[1]
-    out[:] = 0.0
-    total = 0.0
-    for dy in range(-vhalf, vhalf + 1):
-        yy = min(max(y + dy, 0), h - 1)
-        wv = 1.0 + vhalf - abs(dy)
-        total += wv
+    n_p = weights.shape[0]
+    out[:, :] = 0.0
+    count = 0
+    for y in range(y0, y1 + 1):
+        yy = min(max(y, 0), h - 1)
+        count += 1
         for j in range(w):
-            out[j] += wv * (
-                weights[0] * img[yy, j, 0] + weights[1] * img[yy, j, 1] + weights[2] * img[yy, j, 2]
-            )
-    for j in range(w):
-        out[j] /= total
+            r = np.float64(img[yy, j, 0])
+            g = np.float64(img[yy, j, 1])
+            b = np.float64(img[yy, j, 2])
+            for p in range(n_p):
+                out[p, j] += weights[p, 0] * r + weights[p, 1] * g + weights[p, 2] * b
+    inv = 1.0 / count
+    for p in range(n_p):
+        for j in range(w):
+            out[p, j] *= inv
 
 
 @nb.njit(cache=True)
@@ -245,14 +250,29 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     for k in range(ns):
         ramp = out[k, F_INTERVAL]
         out[k, F_INTERVAL] = np.nan
-        if k == 0 or k == ns - 1:
+        c0 = out[k, F_CENTRE]
+        cp = out[k - 1, F_CENTRE] if k > 0 else np.nan
+        cn = out[k + 1, F_CENTRE] if k < ns - 1 else np.nan
+        if not np.isfinite(c0) or not (np.isfinite(cp) or np.isfinite(cn)):
             out[k, F_VALID] = 0.0
             continue
-        cp = out[k - 1, F_CENTRE]
-        c0 = out[k, F_CENTRE]
-        cn = out[k + 1, F_CENTRE]
-        if not (np.isfinite(cp) and np.isfinite(c0) and np.isfinite(cn)):
-            out[k, F_VALID] = 0.0
+        if not (np.isfinite(cp) and np.isfinite(cn)):
+            # outermost band of a run: one-sided interval, checked against the next one
+            sgn = 1 if np.isfinite(cn) else -1
+            c1 = out[k + sgn, F_CENTRE]
+            c2 = out[k + 2 * sgn, F_CENTRE] if 0 <= k + 2 * sgn < ns else np.nan
+            d1 = abs(c1 - c0)
+            d2 = abs(c2 - c1) if np.isfinite(c2) else np.nan
+            if not np.isfinite(d2):
+                out[k, F_VALID] = 0.0
+                continue
+            interval = d1 * d1 / d2  # geometric extrapolation of the spacing
+            out[k, F_INTERVAL] = interval
+            if out[k, F_VALID] == 0.0 or abs(d1 - d2) > itol * interval:
+                out[k, F_VALID] = 0.0
+                continue
+            if out[k, F_LENGTH] + ramp > interval - min_gap:
+                out[k, F_VALID] = 0.0
             continue
         d1 = c0 - cp
         d2 = cn - c0
@@ -276,32 +296,36 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def detect_bands(img, weights, stride, win, scale, params, bands, counts):
-    """Detect bands on every ``stride``-th row.
+def detect_bands(img, weights, stride, wins, scale, params, bands, counts):
+    """Detect the bands of every pattern on every grid row.
+
+    Grid row ``i`` is the average of image rows ``i*stride - v .. i*stride + stride - 1 + v``
+    (``v = params[4]``), centred on the grid cell.
 
     Parameters
     ----------
     img : (H, W, 3) uint8/uint16/float array
-    weights : (3,) float64, channel unmixing weights for this pattern
+    weights : (P, 3) float64, per pattern the channel unmixing weights
     stride : int
-    win : int, window of the sliding mid-level (about 2 line intervals)
+    wins : (P,) int64, window of the sliding mid-level (about 2 line intervals)
     scale : float, full-scale value of the image (255, 65535)
-    params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, vertical_half
-    bands : (rows, max_bands, N_FIELDS) float64 output
-    counts : (rows,) int64 output
+    params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, vertical extra rows
+    bands : (P, rows, max_bands, N_FIELDS) float64 output
+    counts : (P, rows) int64 output
     """
-    h, w = img.shape[0], img.shape[1]
-    rows = counts.shape[0]
-    vhalf = int(params[4])
+    w = img.shape[1]
+    n_p = weights.shape[0]
+    rows = counts.shape[1]
+    v = int(params[4])
     for i in nb.prange(rows):
-        y = i * stride
-        x = np.empty(w)
+        x = np.empty((n_p, w))
         thr = np.empty(w)
-        _row_signal(img, y, weights, vhalf, x)
-        _sliding_mid(x, win, thr)
-        counts[i] = _bands_in_row(
-            x, thr, params[0] * scale, params[2], params[3], params[1], bands[i]
-        )
+        _row_signals(img, i * stride - v, i * stride + stride - 1 + v, weights, x)
+        for p in range(n_p):
+            _sliding_mid(x[p], wins[p], thr)
+            counts[p, i] = _bands_in_row(
+                x[p], thr, params[0] * scale, params[2], params[3], params[1], bands[p, i]
+            )
 
 
 @nb.njit(cache=True, parallel=True)
@@ -314,6 +338,7 @@ def rasterise(bands, counts, stride, gw, reach, fields, maps):
     """
     rows = counts.shape[0]
     nf = fields.shape[0]
+    off = 0.5 * (stride - 1)
     for i in nb.prange(rows):
         for f in range(nf):
             for j in range(gw):
@@ -330,10 +355,10 @@ def rasterise(bands, counts, stride, gw, reach, fields, maps):
                 c0 = bands[i, prev, F_CENTRE]
                 c1 = bands[i, cur, F_CENTRE]
                 if c1 - c0 <= 1.6 * max(bands[i, prev, F_INTERVAL], bands[i, cur, F_INTERVAL]):
-                    j0 = int(np.ceil(c0 / stride))
-                    j1 = int(np.floor(c1 / stride))
+                    j0 = int(np.ceil((c0 - off) / stride))
+                    j1 = int(np.floor((c1 - off) / stride))
                     for j in range(max(j0, 0), min(j1, gw - 1) + 1):
-                        t = (j * stride - c0) / (c1 - c0)
+                        t = (j * stride + off - c0) / (c1 - c0)
                         for f in range(nf):
                             v0 = bands[i, prev, fields[f]]
                             maps[f, i, j] = v0 + t * (bands[i, cur, fields[f]] - v0)
@@ -345,8 +370,13 @@ def rasterise(bands, counts, stride, gw, reach, fields, maps):
                     continue
                 c = bands[i, e, F_CENTRE]
                 b = bands[i, e, F_INTERVAL]
-                lo = int(np.ceil((c - reach * b) / stride))
-                hi = int(np.floor((c + reach * b) / stride))
+                lo = int(np.ceil((c - reach * b - off) / stride))
+                hi = int(np.floor((c + reach * b - off) / stride))
+                # the image border is no object boundary: reach it when it is near
+                if c - 1.2 * b <= 0:
+                    lo = 0
+                if c + 1.2 * b >= (gw - 1) * stride:
+                    hi = gw - 1
                 for j in range(max(lo, 0), min(hi, gw - 1) + 1):
                     if np.isnan(maps[0, i, j]):
                         for f in range(nf):

@@ -34,7 +34,7 @@ from .geometry import camera_rays
 from .patterns import _exp2_step
 from .rig import Rig
 
-LUT_VERSION = 3
+LUT_VERSION = 4
 #: z samples per pixel in the LUT (100 bytes/pixel with the two scalars: 184 MB at 1600x1200)
 LUT_SAMPLES = 22
 #: forward samples of h(z) used to find the monotonic stretch

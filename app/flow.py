@@ -10,13 +10,16 @@ more precisely than a sweep; the sweeps still decide which pixels move.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
+import numba as nb
 import numpy as np
 
-from .patterns import local_pitch
-from .profile_model import fit_blur, tables
+from .errors import ConfigError
+from .patterns import _exp2_step, local_pitch
+from .profile_model import M_STEP, S_AXIS, W_STEP, fit_blur, tables, trilinear_at
 from .rig import Rig
 
 
@@ -39,10 +42,77 @@ class FlowParams:
     """
 
     smoothing_px: float = 10.0
-    static_factor: float = 1.3
+    static_factor: float = 0.6
     static_margin_px: float = 1.0
+    fill_fraction: float = 0.6
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
+
+
+_KIND = {"uniform": 0, "exp2": 1, "exp2-reversed": 2}
+
+
+@nb.njit(cache=True, inline="always")
+def _pitch(kind, step, width, u):
+    if kind == 0:
+        return step
+    if kind == 1:
+        return (u + width) * step
+    return (2.0 * width - u) * step
+
+
+@nb.njit(cache=True, parallel=True)
+def _combine(
+    grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
+    inv, s_lo, s_step, w_step, m_step, static_factor, static_margin, log_ratio, flows,
+):  # fmt: skip
+    """Per grid pixel: blur-corrected sweeps, flows, log ratio (see FlowModel.combine)."""
+    gh, gw = log_ratio.shape
+    nu = u_of.shape[0]
+    for i in nb.prange(gh):
+        for j in range(gw):
+            log_ratio[i, j] = np.nan
+            flows[0, i, j] = np.nan
+            flows[1, i, j] = np.nan
+            B0 = grids[0, 1, i, j]
+            B1 = grids[1, 1, i, j]
+            if not (B0 > 0.0 and B1 > 0.0):
+                continue
+            u = 0.0
+            interval_ratio = math.log(B1 / B0)
+            if single:
+                t = (interval_ratio - u_lo) / u_step
+                if not (t >= 0.0 and t <= nu - 1):
+                    continue
+                k = min(int(t), nu - 2)
+                u = u_of[k] + (t - k) * (u_of[k + 1] - u_of[k])
+            ok = True
+            lf0 = 0.0
+            lf1 = 0.0
+            for p in range(2):
+                m = grids[p, 0, i, j]
+                B = grids[p, 1, i, j]
+                P = _pitch(kinds[p], steps[p], widths[p], u)
+                scale = B / P
+                line = line_px[p] * scale
+                sigma = math.sqrt(blur[p, 0] + blur[p, 1] * scale * scale)
+                L = sigma * trilinear_at(
+                    inv, s_lo, s_step, w_step, m_step, sigma, line / sigma, m / sigma
+                )
+                if not (L > static_factor * line + static_margin):
+                    ok = False
+                    break
+                flows[p, i, j] = L / B * P
+                if p == 0:
+                    lf0 = math.log(L / B)
+                else:
+                    lf1 = math.log(L / B)
+            if not ok:
+                flows[0, i, j] = np.nan
+                flows[1, i, j] = np.nan
+                continue
+            # same projector: the sweeps are equal, the intervals carry the ratio
+            log_ratio[i, j] = interval_ratio if single else lf0 - lf1
 
 
 class FlowModel:
@@ -53,33 +123,44 @@ class FlowModel:
         self.single = rig.single_projector
         self.pairs = rig.patterns
         #: per pattern, fitted blur model (a, b): sigma^2 = a + b * magnification^2
-        self.blur: list[tuple[float, float] | None] = [None, None]
+        self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
+        self._fitted = False
         self.frames = 0
-        if self.single:
-            proj = rig.projectors[0]
-            # u from the interval ratio B2/B1 = P2(u)/P1(u), monotonic in u for the exp2 pair
-            u = np.linspace(-0.5, proj.width - 0.5, 4096)
-            ratio = local_pitch(self.pairs[1][1], proj.width, u) / local_pitch(
-                self.pairs[0][1], proj.width, u
+        self.kinds = np.array([_KIND[pat.kind] for _, pat in self.pairs], dtype=np.int64)
+        self.steps = np.array(
+            [pat.pitch_px if pat.kind == "uniform" else _exp2_step(pat) for _, pat in self.pairs]
+        )
+        self.widths = np.array([float(proj.width) for proj, _ in self.pairs])
+        self.line_px = np.array([pat.width_px for _, pat in self.pairs])
+        if not self.single and np.any(self.kinds != 0):
+            raise ConfigError(
+                "rig: projectors[].patterns[].kind: a two-projector rig needs uniform patterns "
+                "(exp2 patterns are for the single-projector pair)"
             )
-            order = np.argsort(ratio)
-            self._u_of_log_ratio = (np.log(ratio[order]), u[order])
-
-    def projector_column(self, log_ratio: np.ndarray) -> np.ndarray:
-        """Single projector: the projector column u implied by the interval ratio."""
-        xp, fp = self._u_of_log_ratio
-        return np.interp(log_ratio, xp, fp, left=np.nan, right=np.nan)
+        # u from the interval ratio B2/B1 = P2(u)/P1(u) (single projector), on a uniform grid
+        proj = rig.projectors[0]
+        u = np.linspace(-0.5, proj.width - 0.5, 8192)
+        if self.single:
+            p1, p2 = (local_pitch(pat, proj.width, u) for _, pat in self.pairs)
+            ratio = np.log(p2 / p1)
+        else:
+            ratio = np.linspace(0.0, 1.0, u.size)  # unused placeholder
+        order = np.argsort(ratio)
+        self._u_lo, self._u_hi = float(ratio[order][0]), float(ratio[order][-1])
+        grid = np.linspace(self._u_lo, self._u_hi, 4096)
+        self._u_of = np.interp(grid, ratio[order], u[order])
+        self._u_step = (self._u_hi - self._u_lo) / (len(grid) - 1)
 
     def combine(
-        self, maps: list[np.ndarray], params: FlowParams
+        self, grids: np.ndarray, params: FlowParams
     ) -> tuple[np.ndarray, list[np.ndarray], list[float]]:
         """Per-pixel raw log ratio and the two flows in projector pixels (NaN = invalid).
 
         Parameters
         ----------
-        maps : list of numpy.ndarray
-            Per pattern, ``(3, h, w)`` grid maps of the measured band width at half
-            height ``m``, the line interval ``B`` and the 50->20 % ramp ``r`` (camera px).
+        grids : numpy.ndarray
+            ``(2, 3, h, w)``: per pattern, grid maps of the measured band width at
+            half height ``m``, the line interval ``B`` and the 50->20 % ramp ``r``.
         params : FlowParams
 
         Returns
@@ -91,60 +172,66 @@ class FlowModel:
             Per pattern, the blur sigma (camera px) at the median magnification.
         """
         tab = tables()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            intervals = [mp[1] for mp in maps]
-            if self.single:
-                u = self.projector_column(np.log(intervals[1] / intervals[0]))
-                pitches = [local_pitch(pat, proj.width, u) for proj, pat in self.pairs]
-            else:
-                pitches = [np.float64(pat.pitch_px) for _, pat in self.pairs]
-            flows, lengths, blur = [], [], []
-            refit = self.frames % params.blur_refit_frames == 0
-            for i, ((_, pat), (m, B, r), P) in enumerate(
-                zip(self.pairs, maps, pitches, strict=True)
-            ):
-                scale = B / P  # camera px per projector px, locally
-                line = pat.width_px * scale
-                if refit or self.blur[i] is None:
-                    fitted = fit_blur(m, r, line, scale)
-                    if fitted is not None:
-                        self.blur[i] = fitted
-                a, b = self.blur[i] or (1.0, 0.0)
-                sigma = np.sqrt(a + b * scale * scale)
-                blur.append(float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else np.nan)
-                L = tab.true_length(m, line, sigma)
-                L[~(L > params.static_factor * line + params.static_margin_px)] = np.nan
-                lengths.append(L)
-                flows.append((L / B * P).astype(np.float32))
-            if self.single:
-                # same projector: the flow ratio is the interval ratio (sweeps only gate)
-                log_ratio = np.log(intervals[1] / intervals[0])
-            else:
-                log_ratio = np.log(lengths[0] / intervals[0]) - np.log(lengths[1] / intervals[1])
-            moving = np.isfinite(lengths[0]) & np.isfinite(lengths[1])
-            log_ratio = np.where(moving, log_ratio, np.nan).astype(np.float32)
-        for f in flows:
-            f[~moving] = np.nan
+        if not self._fitted or self.frames % params.blur_refit_frames == 0:
+            self._refit_blur(grids)
+        gh, gw = grids.shape[2:]
+        log_ratio = np.empty((gh, gw), np.float32)
+        flows = np.empty((2, gh, gw), np.float32)
+        _combine(
+            grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
+            self._u_lo, self._u_step, self._u_of, tab.inverse, S_AXIS[0], S_AXIS[1] - S_AXIS[0],
+            W_STEP, M_STEP, params.static_factor, params.static_margin_px, log_ratio, flows,
+        )  # fmt: skip
         self.frames += 1
-        return log_ratio, flows, blur
+        blur = []
+        for p in range(2):
+            B = grids[p, 1]
+            med = np.nanmedian(B[::4, ::4]) if np.isfinite(B[::4, ::4]).any() else np.nan
+            scale = med / self.steps[p] if self.kinds[p] == 0 else 1.0
+            blur.append(float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * scale**2)))
+        return log_ratio, [flows[0], flows[1]], blur
+
+    def _refit_blur(self, grids: np.ndarray) -> None:
+        """Fit the blur model of each pattern on a subsample of this frame's bands."""
+        sub = grids[:, :, ::3, ::3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            B0, B1 = sub[0, 1], sub[1, 1]
+            if self.single:
+                u = np.interp(np.log(B1 / B0), np.linspace(self._u_lo, self._u_hi, len(self._u_of)),
+                              self._u_of, left=np.nan, right=np.nan)  # fmt: skip
+            for p, (proj, pat) in enumerate(self.pairs):
+                m, B, r = sub[p]
+                P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
+                scale = B / P
+                fitted = fit_blur(m, r, pat.width_px * scale, scale)
+                if fitted is not None:
+                    self.blur[p] = fitted
+                    self._fitted = True
 
 
-def masked_smooth(values: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian smoothing that ignores NaN pixels and keeps them NaN."""
+def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) -> np.ndarray:
+    """Gaussian smoothing that ignores NaN pixels.
+
+    NaN pixels stay NaN unless at least ``fill_fraction`` of the kernel's
+    weight around them is valid (holes inside a surface are filled; the
+    surface does not grow past its edges).
+    """
     mask = np.isfinite(values)
     if sigma <= 0:
         return values
     m = mask.astype(np.float32)
     v = np.where(mask, values, 0).astype(np.float32)
-    num = cv2.GaussianBlur(v, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
-    den = cv2.GaussianBlur(m, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    num = cv2.GaussianBlur(v, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    den = cv2.GaussianBlur(m, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
-    out[~mask] = np.nan
+    out[~(mask | (den >= fill_fraction))] = np.nan
     return out
 
 
-def smooth_log_ratio(log_ratio: np.ndarray, sigma: float, outlier_sigmas: float) -> np.ndarray:
+def smooth_log_ratio(
+    log_ratio: np.ndarray, sigma: float, outlier_sigmas: float, fill_fraction: float = 1.0
+) -> np.ndarray:
     """Robust masked smoothing: drop outliers against a first smoothing, then smooth again."""
     if sigma <= 0:
         return log_ratio
@@ -155,4 +242,6 @@ def smooth_log_ratio(log_ratio: np.ndarray, sigma: float, outlier_sigmas: float)
         return first
     mad = float(np.median(finite)) * 1.4826 + 1e-6
     cleaned = np.where(resid <= outlier_sigmas * mad, log_ratio, np.nan)
-    return masked_smooth(cleaned, sigma)
+    out = masked_smooth(cleaned, sigma, fill_fraction)
+    # outliers are replaced by their neighbourhood, pixels without data only inside
+    return out

@@ -34,10 +34,21 @@ def undistort_pixels(K: np.ndarray, dist: np.ndarray, pixels: np.ndarray) -> np.
     return und.reshape(shape)
 
 
+def grid_shape(width: int, height: int, stride: int) -> tuple[int, int]:
+    """``(rows, cols)`` of the analysis grid: one sample per ``stride`` x ``stride`` cell."""
+    return height // stride, width // stride
+
+
 def pixel_grid(width: int, height: int, stride: int = 1) -> np.ndarray:
-    """Pixel centres ``(h, w, 2)`` of every ``stride``-th row and column."""
-    xs = np.arange(0, width, stride, dtype=np.float64)
-    ys = np.arange(0, height, stride, dtype=np.float64)
+    """Centres ``(h, w, 2)`` of the ``stride`` x ``stride`` cells of the image.
+
+    Cell (i, j) covers pixels ``[i s, i s + s)``; its centre is ``i s + (s - 1) / 2``,
+    which is exactly where ``cv2.resize`` puts grid samples when upsampling.
+    """
+    gh, gw = grid_shape(width, height, stride)
+    off = (stride - 1) / 2
+    xs = np.arange(gw, dtype=np.float64) * stride + off
+    ys = np.arange(gh, dtype=np.float64) * stride + off
     gx, gy = np.meshgrid(xs, ys)
     return np.stack([gx, gy], axis=-1)
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import bands as bd
 from .depth_model import DepthLUT, DepthRange, load_or_build_lut, lookup_depth
-from .errors import ConfigError
+from .errors import ConfigError, FrameError
 from .flow import FlowModel, FlowParams, smooth_log_ratio
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
@@ -39,11 +39,12 @@ class PipelineConfig:
         ``auto`` estimates the colour leak from each frame; a number fixes it.
     """
 
-    stride: int = 2
+    stride: int = 4
     depth_range: DepthRange = field(default_factory=DepthRange)
     flow: FlowParams = field(default_factory=FlowParams)
     bands: bd.BandParams = field(default_factory=bd.BandParams)
     crosstalk: str | float = "auto"
+    crosstalk_every: int = 30
 
     def __post_init__(self):
         if self.stride not in (1, 2, 4):
@@ -89,59 +90,57 @@ class DepthPipeline:
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
         cam = rig.camera
         self.grid_shape = self.lut.h0.shape
-        self._leak = [0.0, 0.0]
-        self._window: list[int | None] = [None, None]
+        self._leak = np.zeros(2)
+        self._windows: np.ndarray | None = None
+        self._frames = 0
+        self.blur_px: list[float] = [np.nan, np.nan]
         b = cfg.bands
         self._band_params = np.array(
             [b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px, b.min_gap_px,
-             b.vertical_half], dtype=np.float64,
+             b.vertical_extra if cfg.stride > 1 else max(1, b.vertical_extra)],
+            dtype=np.float64,
         )  # fmt: skip
-        s = cfg.stride
-        # dst(x, y) = src(x / s, y / s): grid sample i sits on camera pixel i * s
-        self._upsample = np.array([[1.0 / s, 0, 0], [0, 1.0 / s, 0]])
+        self._fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
         self._full_size = (cam.width, cam.height)
 
     # ------------------------------------------------------------------ stages
 
-    def _weights(self, image: np.ndarray) -> list[np.ndarray]:
+    def _weights(self, image: np.ndarray) -> np.ndarray:
         """Per pattern, RGB weights that isolate its channel (crosstalk removed)."""
         a, b = self.channels
         cfg = self.config
-        if cfg.crosstalk == "auto":
-            # smooth the estimate over frames: it is a property of the rig, not of a frame
-            leak = [bd.estimate_leak(image, a, b), bd.estimate_leak(image, b, a)]
-            for i in range(2):
-                self._leak[i] = leak[i] if self._frames == 0 else 0.8 * self._leak[i] + 0.2 * leak[i]
-        else:
-            self._leak = [float(cfg.crosstalk)] * 2
-        out = []
-        for own, other, leak in ((a, b, self._leak[0]), (b, a, self._leak[1])):
-            w = np.zeros(3)
-            w[own] = 1.0
-            w[other] = -leak
-            out.append(w)
-        return out
+        if cfg.crosstalk != "auto":
+            self._leak[:] = float(cfg.crosstalk)
+        elif self._frames % cfg.crosstalk_every == 0:
+            # a property of the rig, not of a frame: refresh now and then, smoothed
+            leak = np.array([bd.estimate_leak(image, a, b), bd.estimate_leak(image, b, a)])
+            self._leak = leak if self._frames == 0 else 0.7 * self._leak + 0.3 * leak
+        w = np.zeros((2, 3))
+        w[0, a], w[0, b] = 1.0, -self._leak[0]
+        w[1, b], w[1, a] = 1.0, -self._leak[1]
+        return w
 
-    def _window_for(self, i: int, image: np.ndarray, weights: np.ndarray) -> int:
-        """Sliding window of the band detector: about two line intervals, learnt per channel."""
-        if self._window[i] is None:
-            # coarse pass on a few rows with a wide window to learn the interval
-            win = max(31, image.shape[1] // 12) | 1
-            self._window[i] = self._learn_window(image, weights, win) or win
-        return self._window[i]
-
-    def _learn_window(self, image, weights, win) -> int | None:
-        stride = max(8, image.shape[0] // 48)
-        rows = image.shape[0] // stride
-        bands = np.empty((rows, MAX_BANDS_PER_ROW, bd.N_FIELDS))
-        counts = np.empty(rows, np.int64)
-        bd.detect_bands(image, weights, stride, win, self._scale(image), self._band_params,
+    def _detect(self, image, weights, stride, rows, wins):
+        bands = np.empty((2, rows, MAX_BANDS_PER_ROW, bd.N_FIELDS))
+        counts = np.empty((2, rows), np.int64)
+        bd.detect_bands(image, weights, stride, wins, self._scale(image), self._band_params,
                         bands, counts)  # fmt: skip
-        iv = np.concatenate([bands[r, : counts[r], bd.F_INTERVAL] for r in range(rows)])
-        iv = iv[np.isfinite(iv)]
-        if iv.size < 10:
-            return None
-        return int(2 * np.median(iv)) | 1
+        return bands, counts
+
+    def _learn_windows(self, image, weights) -> np.ndarray:
+        """Sliding window of the band detector: about two line intervals, learnt per pattern."""
+        wide = max(31, image.shape[1] // 12) | 1
+        stride = max(8, image.shape[0] // 48)
+        bands, counts = self._detect(image, weights, stride, image.shape[0] // stride,
+                                     np.array([wide, wide]))  # fmt: skip
+        wins = np.full(2, wide, np.int64)
+        for p in range(2):
+            iv = np.concatenate([bands[p, r, : counts[p, r], bd.F_INTERVAL]
+                                 for r in range(counts.shape[1])])  # fmt: skip
+            iv = iv[np.isfinite(iv)]
+            if iv.size >= 10:
+                wins[p] = int(2 * np.median(iv)) | 1
+        return wins
 
     @staticmethod
     def _scale(image: np.ndarray) -> float:
@@ -149,16 +148,12 @@ class DepthPipeline:
 
     # ------------------------------------------------------------------ public
 
-    _frames = 0
-
     def process(self, frame) -> FrameResult:
         """Depth for one frame.  Never raises on image content: bad pixels are NaN."""
         cfg = self.config
         image = frame.image
         cam = self.rig.camera
-        if image.shape[:2] != (cam.height, cam.width):
-            from .errors import FrameError
-
+        if image.shape[:2] != (cam.height, cam.width) or image.ndim != 3:
             raise FrameError(
                 f"frame {frame.stem}: {image.shape[1]}x{image.shape[0]}, expected "
                 f"{cam.width}x{cam.height} (camera.width x camera.height)"
@@ -166,49 +161,39 @@ class DepthPipeline:
         t0 = time.perf_counter()
         timings = {}
         weights = self._weights(image)
+        if self._windows is None:
+            self._windows = self._learn_windows(image, weights)
         t1 = time.perf_counter()
         timings["unmix"] = (t1 - t0) * 1e3
         gh, gw = self.grid_shape
-        maps, band_sets = [], []
-        fields_ = np.array(bd.GRID_FIELDS, dtype=np.int64)
-        for i, w in enumerate(weights):
-            win = self._window_for(i, image, w)
-            bands = np.empty((gh, MAX_BANDS_PER_ROW, bd.N_FIELDS))
-            counts = np.empty(gh, np.int64)
-            bd.detect_bands(image, w, cfg.stride, win, self._scale(image), self._band_params,
-                            bands, counts)  # fmt: skip
-            grid = np.empty((len(fields_), gh, gw), np.float64)
-            bd.rasterise(bands, counts, cfg.stride, gw, 0.5, fields_, grid)
-            maps.append(grid)
-            band_sets.append((bands, counts))
+        bands, counts = self._detect(image, weights, cfg.stride, gh, self._windows)
+        grids = np.empty((2, len(self._fields), gh, gw))
+        for p in range(2):
+            bd.rasterise(bands[p], counts[p], cfg.stride, gw, 0.5, self._fields, grids[p])
         t2 = time.perf_counter()
         timings["bands"] = (t2 - t1) * 1e3
-        raw, flows, self.blur_px = self.flow_model.combine(maps, cfg.flow)
+        raw, flows, self.blur_px = self.flow_model.combine(grids, cfg.flow)
         t3 = time.perf_counter()
         timings["flow"] = (t3 - t2) * 1e3
         log_ratio = smooth_log_ratio(
-            raw, cfg.flow.smoothing_px / cfg.stride, cfg.flow.outlier_sigmas
-        )
+            raw, cfg.flow.smoothing_px / cfg.stride, cfg.flow.outlier_sigmas,
+            cfg.flow.fill_fraction,
+        )  # fmt: skip
         t4 = time.perf_counter()
         timings["smooth"] = (t4 - t3) * 1e3
         depth_grid = lookup_depth(self.lut, log_ratio)
         if cfg.stride == 1:
             depth = depth_grid
         else:
-            depth = cv2.warpAffine(
-                depth_grid, self._upsample, self._full_size,
-                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
-            )  # fmt: skip
+            # grid samples sit at cell centres, exactly where resize expects them
+            depth = cv2.resize(depth_grid, self._full_size, interpolation=cv2.INTER_LINEAR)
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         timings["total"] = (t5 - t0) * 1e3
         self._frames += 1
         result_bands = [
-            _band_set(ch, bands, counts, cfg.stride)
-            for (_, ch), (bands, counts) in zip(
-                [(p, pat.channel) for p, pat in self.rig.patterns], band_sets, strict=True
-            )
+            _band_set(pat.channel, bands[p], counts[p], cfg.stride)
+            for p, (_, pat) in enumerate(self.rig.patterns)
         ]
         return FrameResult(
             frame=frame,
@@ -223,7 +208,8 @@ class DepthPipeline:
 
 
 def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, stride: int) -> BandSet:
-    rows = np.repeat(np.arange(len(counts)) * stride, counts).astype(np.float32)
+    rows = np.repeat(np.arange(len(counts)) * stride + 0.5 * (stride - 1), counts)
+    rows = rows.astype(np.float32)
     sel = np.concatenate([bands[r, : counts[r]] for r in range(len(counts))]) if len(
         counts
     ) else np.empty((0, bd.N_FIELDS))

@@ -77,7 +77,7 @@ def pixel_value(d, L, w, sigma):
     return total * s * s / (2.0 * b)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=False)  # calls into bands.py: numba's cache would not see its changes
 def _simulate_detector(L, w, sigma, phase, out2):
     """Run the real band detector on three identical bands; (m, r) of the middle one."""
     gap = 3.0 * w + 8.0 * sigma + 10.0
@@ -105,7 +105,7 @@ def _simulate_detector(L, w, sigma, phase, out2):
             out2[1] = out[k, 7]
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=False, parallel=True)
 def _measure_table(s_axis, w_axis, l_axis, m_out, r_out):
     ns, nw, nl = s_axis.shape[0], w_axis.shape[0], l_axis.shape[0]
     for idx in nb.prange(ns * nw):
@@ -153,37 +153,40 @@ def _invert_table(m_tab, l_axis, m_axis, out):
                     break
 
 
+@nb.njit(cache=True, inline="always")
+def trilinear_at(table, lo0, st0, step1, step2, x0, x1, x2):
+    """One trilinear lookup; axis 0 from ``lo0`` in steps ``st0`` (clamped), the others from 0."""
+    n0, n1, n2 = table.shape
+    a = min(max((x0 - lo0) / st0, 0.0), n0 - 1.0)
+    b = x1 / step1
+    c = x2 / step2
+    if not (b >= 0.0 and c >= 0.0 and b <= n1 - 1 and c <= n2 - 1):
+        return np.nan
+    i = min(int(a), n0 - 2)
+    j = min(int(b), n1 - 2)
+    q = min(int(c), n2 - 2)
+    fa = a - i
+    fb = b - j
+    fc = c - q
+    acc = 0.0
+    for di in range(2):
+        wa = fa if di else 1.0 - fa
+        for dj in range(2):
+            wb = fb if dj else 1.0 - fb
+            for dq in range(2):
+                wc = fc if dq else 1.0 - fc
+                acc += wa * wb * wc * table[i + di, j + dj, q + dq]
+    return acc
+
+
 @nb.njit(cache=True, parallel=True)
 def _trilinear(table, ax0, step1, step2, x0, x1, x2, out):
-    n0, n1, n2 = table.shape
     f0 = x0.ravel()
     f1 = x1.ravel()
     f2 = x2.ravel()
     res = out.ravel()
-    lo0 = ax0[0]
-    st0 = ax0[1] - ax0[0]
     for k in nb.prange(f0.shape[0]):
-        a = min(max((f0[k] - lo0) / st0, 0.0), n0 - 1.0)
-        b = f1[k] / step1
-        c = f2[k] / step2
-        if not (b >= 0.0 and c >= 0.0 and b <= n1 - 1 and c <= n2 - 1):
-            res[k] = np.nan
-            continue
-        i = min(int(a), n0 - 2)
-        j = min(int(b), n1 - 2)
-        q = min(int(c), n2 - 2)
-        fa = a - i
-        fb = b - j
-        fc = c - q
-        acc = 0.0
-        for di in range(2):
-            wa = fa if di else 1.0 - fa
-            for dj in range(2):
-                wb = fb if dj else 1.0 - fb
-                for dq in range(2):
-                    wc = fc if dq else 1.0 - fc
-                    acc += wa * wb * wc * table[i + di, j + dj, q + dq]
-        res[k] = acc
+        res[k] = trilinear_at(table, ax0[0], ax0[1] - ax0[0], step1, step2, f0[k], f1[k], f2[k])
 
 
 class ProfileTables:

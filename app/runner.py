@@ -130,6 +130,9 @@ class Runner:
         pipeline falls behind); closed by the capture thread at the end.
     max_frames : int, optional
         End the run after this many frames from the camera.
+    count_gaps : bool
+        Count gaps in ``frame.index`` as frames the camera lost (not for a
+        replay, whose gaps are bad frames it lists itself).
 
     Examples
     --------
@@ -156,6 +159,7 @@ class Runner:
         on_result: Callable[[FrameResult], None] | None = None,
         recorder=None,
         max_frames: int | None = None,
+        count_gaps: bool = True,
     ):
         self.camera = camera
         self.pipeline = pipeline
@@ -165,6 +169,7 @@ class Runner:
         self.lossless = lossless
         self.recorder = recorder
         self.max_frames = max_frames
+        self.count_gaps = count_gaps
         self.frames_q = DropOldestQueue(queue_size, lossless, "frames")
         self.results_q = DropOldestQueue(queue_size, lossless, "results")
         self._stats = RunStats()
@@ -264,7 +269,8 @@ class Runner:
                 with self._lock:
                     s = self._stats
                     s.frames_in += 1
-                    if last_index is not None and frame.index > last_index + 1:
+                    gap = last_index is not None and frame.index > last_index + 1
+                    if gap and self.count_gaps:
                         s.camera_lost += frame.index - last_index - 1
                     if last_t is not None and now > last_t:
                         rate = nbytes / 2**20 / (now - last_t)

@@ -132,17 +132,19 @@ def test_line_plot_size_and_content():
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
-    """Two board recordings at 0.25 scale, 10 ms and 20 ms exposure, with their own LUT cache."""
+    """Two board recordings at 0.25 scale, 10 ms and 20 ms exposure.
+
+    The LUT and profile-table cache is the default one, shared with the rest of the
+    suite: a private cache would rebuild the profile tables in every run.
+    """
     base = tmp_path_factory.mktemp("eval")
     rig = resolve_rig("two-projector").scaled(0.25)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("LIGHTFLOW_CACHE", str(base / "cache"))
-        recs = []
-        for exposure in (0.01, 0.02):
-            out = base / f"board-{exposure * 1e3:g}ms"
-            simulate_recording(rig, "board", out, frames=2, exposure_s=exposure)
-            recs.append(out)
-        yield recs
+    recs = []
+    for exposure in (0.01, 0.02):
+        out = base / f"board-{exposure * 1e3:g}ms"
+        simulate_recording(rig, "board", out, frames=2, exposure_s=exposure)
+        recs.append(out)
+    return recs
 
 
 def test_eval_one_recording(recordings, tmp_path, capsys):
@@ -189,3 +191,14 @@ def test_eval_without_ground_truth_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == (f"lightflow: error: {rec}: no ground truth (ground_truth/ folder) — eval "
                    "needs a simulated recording\n")  # fmt: skip
+
+
+def test_bench_stage_table():
+    from lightflow.app.commands.bench import stage_table
+
+    timings = [{"bands": float(i), "flow": 2.0 * i, "total": 3.0 * i} for i in range(1, 11)]
+    lines = stage_table(timings, [3.0 * i + 1 for i in range(1, 11)])
+    rows = {ln.split("  ")[0].strip(): ln.split()[-2:] for ln in lines[2:] if ln[0] != "-"}
+    assert list(rows) == ["bands", "flow", "total", "wall per frame"]
+    assert rows["bands"] == ["5.5", "9.1"]  # median and p90 of 1..10
+    assert rows["wall per frame"] == ["17.5", "28.3"]

@@ -6,12 +6,13 @@ import argparse
 import sys
 import threading
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.errors import ConfigError, FrameError
 
 from .replay import (
     add_output_options,
     add_pipeline_options,
     build_sinks,
+    check_rig_fits_recording,
     close_all,
     describe_outputs,
     make_pipeline,
@@ -71,8 +72,8 @@ def register(subparsers) -> None:
                    help="frames buffered between the threads (default 4)")
     p.add_argument("--lossless", action="store_true",
                    help="block instead of dropping when processing falls behind")
-    p.add_argument("--fps", type=float, default=30.0,
-                   help="frame rate of a synthetic: camera (default 30)")
+    p.add_argument("--fps", type=float, metavar="FPS",
+                   help="camera frame rate (default: the camera's; synthetic: 30)")
     add_output_options(p)
     add_pipeline_options(p)
     p.set_defaults(func=run)
@@ -102,13 +103,17 @@ def run(args: argparse.Namespace) -> int:
     exposure = parse_exposure(args.exposure)
     if args.frames is not None and args.frames <= 0:
         raise ConfigError(f"--frames: expected a positive number, got {args.frames}")
+    if args.fps is not None and not args.fps > 0:
+        raise ConfigError(f"--fps: expected a positive frame rate, got {args.fps}")
     scheme = args.camera.partition(":")[0]
     if args.rig is None and scheme != "replay":
         raise ConfigError("--rig: required with this camera (the rig file, rig.json)")
     rig = load_rig(args.rig) if args.rig else None
+    if scheme == "replay" and rig is not None:
+        check_rig_fits_recording(rig, args.rig, args.camera.partition(":")[2])
     opts = {}
     if scheme == "synthetic":
-        opts = {"frames": args.frames, "fps": args.fps}
+        opts = {"frames": args.frames, "fps": args.fps or 30.0}
     camera = open_camera(args.camera, rig, **opts)
     rig = rig or camera.rig
     patterns = _pattern_output(args, rig)  # before the camera: a bad --screens fails fast
@@ -116,10 +121,14 @@ def run(args: argparse.Namespace) -> int:
     with camera:
         w, h = rig.camera.width, rig.camera.height
         camera.set_size(w, h)
-        print(f"camera {camera.uri}: {w}x{h}", flush=True)
+        rate = ""
+        set_rate = getattr(camera, "set_frame_rate", None)
+        if args.fps and set_rate is not None:
+            rate = f", {set_rate(args.fps):.4g} fps"
+        print(f"camera {camera.uri}: {w}x{h}{rate}", flush=True)
         pipeline = make_pipeline(rig, args)
         if exposure == "auto":
-            controller = BlurAwareExposure(max_s=1.0 / args.fps)
+            controller = BlurAwareExposure(max_s=1.0 / (args.fps or 30.0))
             chosen, decisions = settle_exposure(camera, pipeline, controller, log=print)
             why = decisions[-1].reason if decisions else "no frame to measure"
             print(f"exposure (auto): {chosen * 1e3:.3g} ms ({why})", flush=True)
@@ -148,7 +157,10 @@ def run(args: argparse.Namespace) -> int:
             stats = runner.run(stop)
         else:
             stats = _run_with_patterns(runner, patterns, stop)
-    status.finish(stats)
+    bad = getattr(camera, "bad_frames", [])
+    status.finish(stats, bad)
+    if stats.frames_done == 0 and bad:
+        raise FrameError(f"{camera.uri}: no frame could be used ({bad[0]})")
     describe_outputs(sinks)
     if recorder is not None:
         dropped = f", {recorder.dropped} DROPPED (disk too slow)" if recorder.dropped else ""

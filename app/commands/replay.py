@@ -108,11 +108,25 @@ def close_all(sinks) -> None:
             pass
 
 
-def describe_outputs(sinks, out=sys.stdout) -> None:
+def describe_outputs(sinks, out=None) -> None:
+    out = out if out is not None else sys.stdout
     for sink in sinks:
         describe = getattr(sink, "describe", None)
         if describe is not None:
             print(describe(), file=out)
+
+
+def check_rig_fits_recording(rig, rig_path, recording) -> None:
+    """Refuse an override rig whose camera size differs from the recording's, before the
+    (slow) LUT build rather than on every frame."""
+    from lightflow.app.recording import read_recording
+
+    embedded = read_recording(recording).rig.camera
+    if (embedded.width, embedded.height) != (rig.camera.width, rig.camera.height):
+        raise ConfigError(
+            f"--rig {rig_path}: camera is {rig.camera.width}x{rig.camera.height}, but the "
+            f"recording {recording} holds {embedded.width}x{embedded.height} frames"
+        )
 
 
 def register(subparsers) -> None:
@@ -137,6 +151,8 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.drivers.replay import RecordedCamera
 
     rig = load_rig(args.rig) if args.rig else None
+    if rig is not None:
+        check_rig_fits_recording(rig, args.rig, args.recording)
     camera = RecordedCamera(args.recording, rig=rig)
     rig = camera.rig
     n = len(camera.recording.frames)
@@ -149,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
     if not sinks:
         print("note: no output option given: computing depth only (see --help)", file=sys.stderr)
     status = StatusLine(total=n)
-    runner = Runner(camera, pipeline, sinks, on_stats=status, lossless=True)
+    runner = Runner(camera, pipeline, sinks, on_stats=status, lossless=True,
+                    count_gaps=False)  # a gap is a bad frame, listed separately
     with camera:
         stats = runner.run(threading.Event())
     status.finish(stats, camera.bad_frames)

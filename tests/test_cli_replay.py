@@ -1,0 +1,114 @@
+"""``lightflow replay`` end to end on a small synthetic recording, and its bad-input paths."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lightflow.app.cli import main
+from lightflow.app.recording import RecordingWriter, read_recording
+from lightflow.app.rig import load_rig
+from lightflow.drivers.synthetic import SensorModel, SyntheticCamera
+from rerun.chunk import RrdReader
+
+RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
+N_FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    rig = load_rig(RIG_FILE).scaled(0.25)
+    root = tmp_path_factory.mktemp("rec") / "rec"
+    cam = SyntheticCamera(rig, "board", frames=N_FRAMES, sensor=SensorModel(samples=8))
+    with cam, RecordingWriter(root, rig, cam.exposure_s) as writer:
+        for frame in cam.frames():
+            assert writer.write(frame)
+    return root
+
+
+def copy_recording(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
+    depth_dir, rrd = tmp_path / "depth", tmp_path / "out" / "rec.rrd"
+    status = main(["replay", str(recording), "--export-depth", str(depth_dir),
+                   "--rrd", str(rrd), "--compress"])  # fmt: skip
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    files = sorted(p.name for p in depth_dir.iterdir())
+    assert files == [f"{i:06d}.npy" for i in range(N_FRAMES)]
+    for f in files:
+        depth = np.load(depth_dir / f)
+        assert depth.shape == (300, 400) and depth.dtype == np.float32
+    # the board is 0.6-0.9 m away: whatever got a depth must be near that
+    depth = np.load(depth_dir / files[-1])
+    finite = depth[np.isfinite(depth)]
+    assert finite.size > 0 and 0.4 < float(np.median(finite)) < 1.1
+    frames = set()
+    for chunk in RrdReader(rrd).stream():
+        if chunk.entity_path == "/camera/depth":
+            rb = chunk.to_record_batch()
+            frames.update(rb.column("frame").to_pylist())
+    assert frames == set(range(N_FRAMES))
+    assert f"processed {N_FRAMES} of {N_FRAMES} frames" in err
+    assert f"depth maps: {N_FRAMES} files in {depth_dir}/" in out
+    assert f"open with `rerun {rrd}`" in out
+
+
+def test_replay_lists_bad_frames_and_still_succeeds(recording, tmp_path, capsys):
+    rec = copy_recording(recording, tmp_path / "rec")
+    (rec / "frames" / "000001.png").unlink()
+    status = main(["replay", str(rec), "--export-depth", str(tmp_path / "d")])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["000000.npy", "000002.npy"]
+    assert "bad frames 1" in err
+    assert "000001.png: frame file missing (listed as frames[1])" in err
+
+
+def test_replay_with_no_good_frame_exits_2(recording, tmp_path, capsys):
+    rec = copy_recording(recording, tmp_path / "rec")
+    for png in (rec / "frames").iterdir():
+        png.write_bytes(b"not a png")
+    status = main(["replay", str(rec)])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert f"lightflow: error: {rec}: none of the {N_FRAMES} frames could be replayed" in err
+    assert "Traceback" not in err
+
+
+def test_replay_unknown_key_is_one_line_exit_2(recording, tmp_path, capsys):
+    rec = copy_recording(recording, tmp_path / "rec")
+    doc = json.loads((rec / "recording.json").read_text())
+    doc["gain"] = 3
+    (rec / "recording.json").write_text(json.dumps(doc))
+    status = main(["replay", str(rec), "--rrd", str(tmp_path / "x.rrd")])
+    out, err = capsys.readouterr()
+    assert status == 2
+    lines = err.strip().splitlines()
+    assert lines == [f"lightflow: error: {rec / 'recording.json'}: unknown key 'gain' "
+                     f"(expected only: exposure_s, format, frames, rig)"]  # fmt: skip
+    assert not (tmp_path / "x.rrd").exists()
+
+
+def test_replay_rig_override_size_mismatch(recording, tmp_path, capsys):
+    # the full-size rig does not fit the 400x300 frames: refused at once, exit 2
+    status = main(["replay", str(recording), "--rig", str(RIG_FILE)])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert err == (f"lightflow: error: --rig {RIG_FILE}: camera is 1600x1200, but the recording "
+                   f"{recording} holds 400x300 frames\n")
+    assert read_recording(recording).rig.camera.width == 400  # the recording is untouched
+
+
+def test_replay_help_has_examples(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["replay", "--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert "lightflow replay rec/ --rrd out/rec.rrd" in out and "--export-depth DIR" in out

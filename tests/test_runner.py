@@ -1,0 +1,312 @@
+"""Runner: drop-oldest counting, lossless mode, camera gaps, errors from each thread, sinks."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lightflow.app.errors import DeviceLostError, DriverError, FrameError
+from lightflow.app.exposure import BlurAwareExposure, measure_bands, settle_exposure
+from lightflow.app.pipeline import DepthPipeline, PipelineConfig
+from lightflow.app.results import BandSet, RunStats
+from lightflow.app.rig import load_rig
+from lightflow.app.runner import DropOldestQueue, Runner
+from lightflow.app.status import StatusLine, format_status, format_summary
+from lightflow.drivers import open_camera
+from lightflow.drivers.base import Camera, Frame
+from lightflow.drivers.synthetic import SensorModel, SyntheticCamera
+
+RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
+WAIT_S = 60.0
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_rig(RIG_FILE).scaled(0.25)
+
+
+@pytest.fixture(scope="module")
+def image(rig):
+    cam = SyntheticCamera(rig, "board", frames=1, sensor=SensorModel(samples=4))
+    with cam:
+        return next(iter(cam.frames())).image
+
+
+@pytest.fixture(scope="module")
+def pipeline(rig):
+    return DepthPipeline(rig, PipelineConfig())
+
+
+class ListCamera(Camera):
+    """A camera that yields the given images with the given indices, as fast as it can.
+
+    ``indices=None`` with ``endless=True`` yields until :meth:`stop`;
+    ``fail_with`` is raised after the last image (like an unplugged camera).
+    """
+
+    uri = "test:list"
+
+    def __init__(self, images, indices=None, fail_with=None, endless=False):
+        self.images = images
+        self.indices = indices if indices is not None else list(range(len(images)))
+        self.fail_with = fail_with
+        self.endless = endless
+        self.exhausted = threading.Event()
+        self._stop = threading.Event()
+        self.stop_calls = 0
+
+    def open(self):
+        self._stop.clear()
+
+    def close(self):
+        pass
+
+    @property
+    def size(self):
+        return self.images[0].shape[1], self.images[0].shape[0]
+
+    @property
+    def exposure_s(self):
+        return 0.02
+
+    def set_exposure(self, seconds):
+        return 0.02
+
+    def stop(self):
+        self.stop_calls += 1
+        self._stop.set()
+
+    def stats(self):
+        return {"underruns": 3.0}
+
+    def frames(self) -> Iterator[Frame]:
+        try:
+            k = 0
+            while not self._stop.is_set():
+                if k >= len(self.indices):
+                    if not self.endless:
+                        break
+                    self.indices.append(self.indices[-1] + 1)
+                i = self.indices[k]
+                yield Frame(i, i / 30, 0.02, self.images[k % len(self.images)], f"{i:06d}")
+                k += 1
+            if self.fail_with is not None:
+                raise self.fail_with
+        finally:
+            self.exhausted.set()
+
+
+class ListSink:
+    """Collects frame indices; may block on an Event or fail on a given write or on close."""
+
+    def __init__(self, gate: threading.Event | None = None, fail_at=None, fail_close=None):
+        self.gate = gate
+        self.fail_at = fail_at
+        self.fail_close = fail_close
+        self.indices: list[int] = []
+        self.stats: list[RunStats] = []
+        self.closed = 0
+
+    def write(self, result, stats):
+        if self.gate is not None:
+            assert self.gate.wait(WAIT_S)
+        if self.fail_at is not None and len(self.indices) == self.fail_at:
+            raise DriverError("test sink: disk full")
+        self.indices.append(result.frame.index)
+        self.stats.append(stats)
+        assert result.depth.shape == (300, 400)
+
+    def close(self):
+        self.closed += 1
+        if self.fail_close is not None:
+            raise self.fail_close
+
+
+def test_queue_drops_oldest_and_counts():
+    q = DropOldestQueue(2)
+    for i in range(5):
+        assert q.put(i)
+    assert q.dropped == 3
+    q.put_end()
+    assert [q.get(), q.get()] == [3, 4]
+    q.abort()
+    assert not q.put(9)
+
+
+def test_slow_sink_drops_oldest(image, pipeline):
+    cam = ListCamera([image] * 20)
+    slow = ListSink(gate=cam.exhausted)  # blocks until the camera has delivered everything
+    with cam:
+        stats = Runner(cam, pipeline, [slow], queue_size=2).run(threading.Event())
+    assert stats.frames_in == 20
+    assert stats.dropped > 0
+    e = stats.extra
+    assert e["dropped_frames_queue"] + e["dropped_results_queue"] == stats.dropped
+    assert stats.frames_done + stats.dropped == 20
+    assert slow.indices == sorted(slow.indices)
+    assert slow.indices[-1] == 19  # the newest frame is never the one dropped
+    assert len(slow.indices) == stats.frames_done
+    assert slow.closed == 1
+    assert e["camera_underruns"] == 3.0
+    assert stats.latency_ms > 0 and stats.fps > 0 and stats.mib_per_s > 0
+
+
+def test_lossless_blocks_instead_of_dropping(image, pipeline):
+    cam = ListCamera([image] * 12)
+    slow = ListSink(gate=threading.Event())
+    seen: list[RunStats] = []
+    runner = Runner(cam, pipeline, [slow], queue_size=2, lossless=True, on_stats=seen.append)
+    stop = threading.Event()
+    with cam:
+        runner.start(stop)
+        assert not cam.exhausted.wait(0.5)  # the blocked sink holds the camera back
+        slow.gate.set()
+        stats = runner.join()
+    assert slow.indices == list(range(12))
+    assert stats.dropped == 0 and stats.frames_done == 12
+    assert [s.frames_done for s in seen] == list(range(1, 13))
+    assert stop.is_set() and not runner.stopped  # set because the run ended, not by the user
+
+
+def test_camera_gaps_are_counted(image, pipeline):
+    cam = ListCamera([image] * 5, indices=[0, 1, 2, 5, 6])
+    sink = ListSink()
+    with cam:
+        stats = Runner(cam, pipeline, [sink], lossless=True).run()
+    assert stats.camera_lost == 2
+    assert sink.indices == [0, 1, 2, 5, 6]
+
+
+def test_device_lost_drains_and_closes(image, pipeline):
+    lost = DeviceLostError("aravis:127.0.0.1: camera lost after 5 frames (no answer)")
+    cam = ListCamera([image] * 5, fail_with=lost)
+    sinks = [ListSink(), ListSink()]
+    runner = Runner(cam, pipeline, sinks, lossless=True)
+    with cam, pytest.raises(DeviceLostError) as info:
+        runner.run()
+    assert info.value is lost
+    for s in sinks:
+        assert s.indices == [0, 1, 2, 3, 4] and s.closed == 1
+
+
+def test_processing_error_stops_camera(image, pipeline):
+    small = np.zeros((10, 10, 3), np.uint8)
+    cam = ListCamera([image, image, small, image], endless=True)
+    sink = ListSink()
+    with cam, pytest.raises(FrameError, match="frame 000002: 10x10, expected 400x300"):
+        Runner(cam, pipeline, [sink], lossless=True).run()
+    assert cam.exhausted.is_set() and cam.stop_calls >= 1
+    assert sink.indices == [0, 1] and sink.closed == 1
+
+
+def test_sink_error_stops_everything_and_closes_each_sink_once(image, pipeline):
+    cam = ListCamera([image], endless=True)
+    bad, good = ListSink(fail_at=3), ListSink()
+    with cam, pytest.raises(DriverError, match="test sink: disk full"):
+        Runner(cam, pipeline, [bad, good]).run()
+    assert cam.exhausted.is_set()
+    assert bad.closed == 1 and good.closed == 1
+    assert len(bad.indices) == 3 and bad.indices == sorted(bad.indices)  # live: drops happen
+
+
+def test_close_error_is_raised_and_other_sinks_still_close(image, pipeline):
+    cam = ListCamera([image] * 2)
+    failing = ListSink(fail_close=DriverError("Rerun viewer exited: gone"))
+    other = ListSink()
+    with cam, pytest.raises(DriverError, match="viewer exited"):
+        Runner(cam, pipeline, [failing, other]).run()
+    assert failing.closed == 1 and other.closed == 1
+
+
+def test_stop_from_outside_with_main_thread_busy(image, pipeline):
+    cam = ListCamera([image], endless=True)
+    sink = ListSink()
+    stop = threading.Event()
+    runner = Runner(cam, pipeline, [sink], on_stats=lambda s: s.frames_done >= 3 and stop.set())
+    with cam:
+        runner.start(stop)
+        assert stop.wait(WAIT_S)  # the main thread would be in pyglet meanwhile
+        stats = runner.join()
+    assert runner.stopped and stats.frames_done >= 3 and sink.closed == 1
+
+
+def test_max_frames(image, pipeline):
+    cam = ListCamera([image], endless=True)
+    sink = ListSink()
+    with cam:
+        stats = Runner(cam, pipeline, [sink], lossless=True, max_frames=4).run()
+    assert sink.indices == [0, 1, 2, 3] and stats.frames_in == 4
+
+
+def test_status_line_and_summary():
+    import io
+
+    stats = RunStats(frames_in=10, frames_done=8, dropped=2, camera_lost=1, fps=29.5,
+                     latency_ms=41.0, mib_per_s=12.5,
+                     extra={"dropped_frames_queue": 2.0, "dropped_results_queue": 0.0,
+                            "coverage": 0.4, "camera_underruns": 5.0})  # fmt: skip
+    text = format_status(stats, total=10)
+    for part in ["frame 8/10", "29.5 fps", "12.5 MiB/s", "latency   41 ms", "coverage  40%",
+                 "drops 2 frames/0 results", "camera lost 1", "underruns 5"]:  # fmt: skip
+        assert part in text, (part, text)
+    out = io.StringIO()  # not a TTY: whole lines, throttled
+    line = StatusLine(out, total=10, interval_s=100.0)
+    line.update(stats)
+    line.update(stats)
+    assert out.getvalue().count("\n") == 1
+    line.finish(stats, ["rec/frames/000003.png: frame file missing (listed as frames[3])"])
+    summary = format_summary(stats, ["x"])
+    assert summary[0].startswith("processed 8 of 10 frames; dropped 2")
+    assert "bad frames 1" in summary[0]
+    assert "frame file missing" in out.getvalue()
+
+
+def test_open_camera_uris(rig, tmp_path):
+    from lightflow.app.errors import ConfigError
+
+    cam = open_camera("synthetic:ball", rig, frames=2, fps=60.0)
+    assert isinstance(cam, SyntheticCamera) and cam.n_frames == 2 and cam.fps == 60.0
+    assert open_camera("synthetic:ball", rig, frames=None).n_frames is None
+    assert open_camera("v4l2:/dev/video7").path == "/dev/video7"
+    assert open_camera("aravis:127.0.0.1").device == "127.0.0.1"
+    with pytest.raises(ConfigError, match=r"camera 'gige:1': unknown camera URI .*aravis:"):
+        open_camera("gige:1")
+    with pytest.raises(ConfigError, match="needs a rig"):
+        open_camera("synthetic:fan")
+    with pytest.raises(ConfigError, match="option 'fps' does not apply"):
+        open_camera("v4l2:/dev/video0", fps=3)
+    with pytest.raises(ConfigError, match="not a recording folder"):
+        open_camera(f"replay:{tmp_path}/none")
+
+
+def test_measure_bands_fraction():
+    # two rows of bands 4 px long every 10 px: 0.4 of the interval
+    starts = np.concatenate([np.arange(0, 300, 10), np.arange(0, 300, 10)]).astype(np.float32)
+    rows = np.repeat([0.0, 2.0], 30).astype(np.float32)
+    b = BandSet("red", rows, starts, starts + 4, np.ones(60, bool))
+    m = measure_bands(b)
+    assert m.fraction == pytest.approx(0.4) and m.length_px == pytest.approx(4.0)
+    assert m.interval_px == pytest.approx(10.0) and m.pairs == 58
+
+
+def test_auto_exposure_settles_on_synthetic_camera(rig, pipeline):
+    # start far too short: the bands are barely longer than the static lines
+    cam = SyntheticCamera(rig, "board", frames=None, exposure_s=0.004,
+                          sensor=SensorModel(samples=8))  # fmt: skip
+    controller = BlurAwareExposure()
+    lines: list[str] = []
+    with cam:
+        chosen, decisions = settle_exposure(cam, pipeline, controller, max_frames=12,
+                                            log=lines.append)  # fmt: skip
+    assert chosen == cam.exposure_s and chosen > 0.008
+    first = decisions[0]
+    assert first.changed and first.exposure_s > first.previous_s
+    assert "too short, exposure 4 -> " in first.reason and "of the interval" in first.reason
+    last = decisions[-1]
+    lo, hi = controller.band
+    assert not last.changed and lo <= last.fraction <= hi
+    assert "in the best range" in last.reason
+    assert len(lines) == len(decisions)
