@@ -243,6 +243,11 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_HEIGHT] = height
         out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
         ok = abs(ramp_l - ramp_r) <= sym_tol + 0.25 * max(ramp_l, ramp_r)
+        # a band running into the image border may be cut: it must visibly end before it
+        margin = 2.0 * max(ramp_l, ramp_r) + 4.0
+        if x20l - margin < 0 or x20r + margin > n - 1:
+            out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
+            ok = False
         # support of the band (ramp extrapolated to zero) must leave a flat gap
         out[k, F_INTERVAL] = (ramp_l + ramp_r) / 0.6  # temporarily: full ramp length
         out[k, F_VALID] = 1.0 if ok else 0.0
@@ -263,10 +268,11 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             c2 = out[k + 2 * sgn, F_CENTRE] if 0 <= k + 2 * sgn < ns else np.nan
             d1 = abs(c1 - c0)
             d2 = abs(c2 - c1) if np.isfinite(c2) else np.nan
-            if not np.isfinite(d2):
+            if not (d2 > 2.0 and d1 > 2.0):  # merged bands can share a centre
                 out[k, F_VALID] = 0.0
                 continue
-            interval = d1 * d1 / d2  # geometric extrapolation of the spacing
+            # the missing spacing extrapolated linearly; the interval is the mean of both
+            interval = 1.5 * d1 - 0.5 * d2
             out[k, F_INTERVAL] = interval
             if out[k, F_VALID] == 0.0 or abs(d1 - d2) > itol * interval:
                 out[k, F_VALID] = 0.0
@@ -278,6 +284,9 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         d2 = cn - c0
         interval = 0.5 * (d1 + d2)
         out[k, F_INTERVAL] = interval
+        if not (d1 > 2.0 and d2 > 2.0):  # merged bands can share a centre
+            out[k, F_VALID] = 0.0
+            continue
         if out[k, F_VALID] == 0.0:
             continue
         if abs(d1 - d2) > itol * interval:
@@ -328,13 +337,53 @@ def detect_bands(img, weights, stride, wins, scale, params, bands, counts):
             )
 
 
+@nb.njit(cache=True)
+def _extend_runs(maps, i, gw, stride, reach, interval_field):
+    """Extrapolate each run of a grid row linearly past its ends.
+
+    A run ends at the outermost band centre; the surface goes on for about half
+    an interval, and to the image border when that is near (the border is no
+    object boundary).  The slope comes from the last interval of the run.
+    """
+    nf = maps.shape[0]
+    j = 0
+    while j < gw:
+        if np.isnan(maps[0, i, j]):
+            j += 1
+            continue
+        a = j
+        while j < gw and not np.isnan(maps[0, i, j]):
+            j += 1
+        b = j - 1
+        for side in range(2):
+            end = a if side == 0 else b
+            step = -1 if side == 0 else 1
+            B = maps[interval_field, i, end] / stride
+            n = min(b - a, max(1, int(B)))
+            inner = end - step * n
+            ext = int(reach * B)
+            if (side == 0 and end - 1.6 * B <= 0) or (side == 1 and end + 1.6 * B >= gw - 1):
+                ext = gw
+            for d in range(1, ext + 1):
+                q = end + step * d
+                if q < 0 or q >= gw or not np.isnan(maps[0, i, q]):
+                    break
+                for f in range(nf):
+                    v = maps[f, i, end]
+                    if n > 0:
+                        v += (maps[f, i, end] - maps[f, i, inner]) * d / n
+                    maps[f, i, q] = v
+        j = b + 1 + int(reach * maps[interval_field, i, b] / stride) + 1
+
+
 @nb.njit(cache=True, parallel=True)
 def rasterise(bands, counts, stride, gw, reach, fields, maps):
     """Interpolate band fields along each row onto the grid columns.
 
-    ``maps[f]`` receives field ``fields[f]``.  Values are interpolated linearly
-    between neighbouring valid bands at most 1.6 intervals apart and held for
-    ``reach`` intervals beyond the outermost band of a run; elsewhere NaN.
+    ``maps[f]`` receives field ``fields[f]`` (``fields[1]`` must be the interval).
+    Values are interpolated linearly between neighbouring valid bands at most
+    1.6 intervals apart and extrapolated linearly ``reach`` intervals beyond
+    the ends of each run; elsewhere NaN.
     """
     rows = counts.shape[0]
     nf = fields.shape[0]
@@ -345,43 +394,28 @@ def rasterise(bands, counts, stride, gw, reach, fields, maps):
                 maps[f, i, j] = np.nan
         prev = -1
         n = counts[i]
-        for k in range(n + 1):
-            cur = -1
-            if k < n and bands[i, k, F_VALID] > 0:
-                cur = k
-            if k < n and cur < 0:
+        for k in range(n):
+            if bands[i, k, F_VALID] <= 0:
                 continue
-            if prev >= 0 and cur >= 0:
+            if prev >= 0:
                 c0 = bands[i, prev, F_CENTRE]
-                c1 = bands[i, cur, F_CENTRE]
-                if c1 - c0 <= 1.6 * max(bands[i, prev, F_INTERVAL], bands[i, cur, F_INTERVAL]):
+                c1 = bands[i, k, F_CENTRE]
+                if 0.0 < c1 - c0 <= 1.6 * max(bands[i, prev, F_INTERVAL], bands[i, k, F_INTERVAL]):
                     j0 = int(np.ceil((c0 - off) / stride))
                     j1 = int(np.floor((c1 - off) / stride))
                     for j in range(max(j0, 0), min(j1, gw - 1) + 1):
                         t = (j * stride + off - c0) / (c1 - c0)
                         for f in range(nf):
                             v0 = bands[i, prev, fields[f]]
-                            maps[f, i, j] = v0 + t * (bands[i, cur, fields[f]] - v0)
-                    prev = cur
-                    continue
-            # a run ends at prev and/or starts at cur: hold values for `reach` intervals
-            for e in (prev, cur):
-                if e < 0:
-                    continue
-                c = bands[i, e, F_CENTRE]
-                b = bands[i, e, F_INTERVAL]
-                lo = int(np.ceil((c - reach * b - off) / stride))
-                hi = int(np.floor((c + reach * b - off) / stride))
-                # the image border is no object boundary: reach it when it is near
-                if c - 1.2 * b <= 0:
-                    lo = 0
-                if c + 1.2 * b >= (gw - 1) * stride:
-                    hi = gw - 1
-                for j in range(max(lo, 0), min(hi, gw - 1) + 1):
-                    if np.isnan(maps[0, i, j]):
-                        for f in range(nf):
-                            maps[f, i, j] = bands[i, e, fields[f]]
-            prev = cur if cur >= 0 else -1
+                            maps[f, i, j] = v0 + t * (bands[i, k, fields[f]] - v0)
+            # a band without partner still marks its own grid sample
+            c = bands[i, k, F_CENTRE]
+            jc = int(np.floor((c - off) / stride + 0.5))
+            if 0 <= jc < gw and np.isnan(maps[0, i, jc]):
+                for f in range(nf):
+                    maps[f, i, jc] = bands[i, k, fields[f]]
+            prev = k
+        _extend_runs(maps, i, gw, stride, reach, 1)
 
 
 def estimate_leak(img: np.ndarray, target: int, source: int, step: int = 8) -> float:

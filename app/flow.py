@@ -96,9 +96,7 @@ def _combine(
                 scale = B / P
                 line = line_px[p] * scale
                 sigma = math.sqrt(blur[p, 0] + blur[p, 1] * scale * scale)
-                L = sigma * trilinear_at(
-                    inv, s_lo, s_step, w_step, m_step, sigma, line / sigma, m / sigma
-                )
+                L = trilinear_at(inv, s_lo, s_step, w_step, m_step, sigma, line, m)
                 if not (L > static_factor * line + static_margin):
                     ok = False
                     break

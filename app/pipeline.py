@@ -86,6 +86,13 @@ class DepthPipeline:
         self.lut = lut or load_or_build_lut(rig, cfg.stride, cfg.depth_range, progress)
         if self.lut.stride != cfg.stride:
             raise ConfigError(f"LUT stride {self.lut.stride} differs from stride {cfg.stride}")
+        usable = float(np.mean(self.lut.usable))
+        if usable < 0.05:
+            raise ConfigError(
+                f"rig: projectors: the flow ratio does not change with depth on "
+                f"{100 * (1 - usable):.0f} % of the image (parallel projectors, or a single "
+                f"projector with like patterns?): no depth can be measured; see `lightflow rig check`"
+            )
         self.flow_model = FlowModel(rig)
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
         cam = rig.camera
@@ -161,7 +168,8 @@ class DepthPipeline:
         t0 = time.perf_counter()
         timings = {}
         weights = self._weights(image)
-        if self._windows is None:
+        if self._windows is None or self._frames % cfg.crosstalk_every == 0:
+            # relearnt now and then: the first frame may have had merged or no bands
             self._windows = self._learn_windows(image, weights)
         t1 = time.perf_counter()
         timings["unmix"] = (t1 - t0) * 1e3

@@ -63,6 +63,8 @@ def register(subparsers) -> None:
     p.add_argument("--screens", metavar="S1[,S2]",
                    help="show each projector's pattern on these screens (see lightflow project)")
     p.add_argument("--display", metavar=":N", help="X display for --screens (default: $DISPLAY)")
+    p.add_argument("--allow-size-mismatch", action="store_true",
+                   help="accept a screen larger than the projector image (drawn 1:1 top-left)")
     p.add_argument("--exposure", metavar="MS|auto",
                    help="exposure in milliseconds, or auto (default: leave the camera's)")
     p.add_argument("--record", metavar="DIR", help="also record the raw frames into a new folder")
@@ -182,6 +184,7 @@ def _pattern_output(args: argparse.Namespace, rig):
     return ProjectorWindows(
         [(p.name, s, pattern_image(p)) for p, s in zip(rig.projectors, selectors, strict=True)],
         display=args.display,
+        allow_size_mismatch=args.allow_size_mismatch,
     )
 
 

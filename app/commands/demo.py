@@ -44,8 +44,8 @@ def register(subparsers) -> None:
     p.add_argument("--scene", default="fan", help="built-in scene (default fan)")
     p.add_argument("--rig", default="two-projector", metavar="NAME|PATH",
                    help="two-projector, single-projector or a rig file (default two-projector)")
-    p.add_argument("--frames", type=int, default=6, metavar="N",
-                   help="frames to render (default 6)")
+    p.add_argument("--frames", type=int, default=4, metavar="N",
+                   help="frames to render (default 4)")
     p.add_argument("--scale", type=float, default=0.5, metavar="S",
                    help="camera resolution relative to the rig's (default 0.5)")
     p.add_argument("--out", default="out", metavar="DIR",
