@@ -50,7 +50,9 @@ class BandParams:
     min_gap_px : float
         Flat background needed between the supports of neighbouring bands.
     vertical_extra : int
-        Rows averaged beyond the grid cell on each side (along the lines), against noise.
+        Image rows averaged on each side of a measured row (only for straight, upright lines).
+    rows_per_cell : int
+        Image rows measured per grid cell; their measurements are averaged.
     """
 
     min_contrast: float = 0.025
@@ -58,6 +60,7 @@ class BandParams:
     symmetry_tolerance_px: float = 1.5
     min_gap_px: float = 1.0
     vertical_extra: int = 0
+    rows_per_cell: int = 2
 
 
 @nb.njit(cache=True, inline="always")
@@ -121,21 +124,19 @@ def _sliding_mid(x, win, out):
 
 @nb.njit(cache=True)
 def _row_signals(img, y0, y1, weights, out):
-    """Box-average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``."""
+    """Average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``."""
     h, w = img.shape[0], img.shape[1]
     n_p = weights.shape[0]
     out[:, :] = 0.0
-    count = 0
     for y in range(y0, y1 + 1):
         yy = min(max(y, 0), h - 1)
-        count += 1
         for j in range(w):
             r = np.float64(img[yy, j, 0])
             g = np.float64(img[yy, j, 1])
             b = np.float64(img[yy, j, 2])
             for p in range(n_p):
                 out[p, j] += weights[p, 0] * r + weights[p, 1] * g + weights[p, 2] * b
-    inv = 1.0 / count
+    inv = 1.0 / (y1 - y0 + 1)
     for p in range(n_p):
         for j in range(w):
             out[p, j] *= inv
@@ -305,36 +306,54 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def detect_bands(img, weights, stride, wins, scale, params, bands, counts):
-    """Detect the bands of every pattern on every grid row.
+def detect_bands(img, weights, row_y, wins, scale, params, bands, counts):
+    """Detect the bands of every pattern on the image rows ``row_y``.
 
-    Grid row ``i`` is the average of image rows ``i*stride - v .. i*stride + stride - 1 + v``
-    (``v = params[4]``), centred on the grid cell.
+    Each row is measured on its own (optionally averaged with ``params[4]`` rows
+    on each side): lines on tilted or curved surfaces are slanted, and combining
+    rows before measuring would smear them.
 
     Parameters
     ----------
     img : (H, W, 3) uint8/uint16/float array
     weights : (P, 3) float64, per pattern the channel unmixing weights
-    stride : int
+    row_y : (R,) int64, image rows to measure
     wins : (P,) int64, window of the sliding mid-level (about 2 line intervals)
     scale : float, full-scale value of the image (255, 65535)
-    params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, vertical extra rows
-    bands : (P, rows, max_bands, N_FIELDS) float64 output
-    counts : (P, rows) int64 output
+    params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, extra rows
+    bands : (P, R, max_bands, N_FIELDS) float64 output
+    counts : (P, R) int64 output
     """
     w = img.shape[1]
     n_p = weights.shape[0]
-    rows = counts.shape[1]
     v = int(params[4])
-    for i in nb.prange(rows):
+    for i in nb.prange(row_y.shape[0]):
         x = np.empty((n_p, w))
         thr = np.empty(w)
-        _row_signals(img, i * stride - v, i * stride + stride - 1 + v, weights, x)
+        _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
         for p in range(n_p):
             _sliding_mid(x[p], wins[p], thr)
             counts[p, i] = _bands_in_row(
                 x[p], thr, params[0] * scale, params[2], params[3], params[1], bands[p, i]
             )
+
+
+@nb.njit(cache=True, parallel=True)
+def cell_mean(maps, k, out):
+    """Average ``k`` consecutive measured rows into one grid row, ignoring NaN."""
+    nf, rows, gw = maps.shape
+    for i in nb.prange(rows // k):
+        for j in range(gw):
+            n = 0
+            for f in range(nf):
+                out[f, i, j] = 0.0
+            for q in range(k):
+                if not np.isnan(maps[0, i * k + q, j]):
+                    n += 1
+                    for f in range(nf):
+                        out[f, i, j] += maps[f, i * k + q, j]
+            for f in range(nf):
+                out[f, i, j] = out[f, i, j] / n if n else np.nan
 
 
 @nb.njit(cache=True)

@@ -19,7 +19,7 @@ from .flow import FlowModel, FlowParams, smooth_log_ratio
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 
-MAX_BANDS_PER_ROW = 256
+MAX_BANDS_PER_ROW = 160
 
 
 @dataclass(frozen=True)
@@ -104,10 +104,17 @@ class DepthPipeline:
         b = cfg.bands
         self._band_params = np.array(
             [b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px, b.min_gap_px,
-             b.vertical_extra if cfg.stride > 1 else max(1, b.vertical_extra)],
+             b.vertical_extra],
             dtype=np.float64,
         )  # fmt: skip
         self._fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
+        # measured image rows: rows_per_cell rows around the centre of every grid cell
+        s = cfg.stride
+        k = max(1, min(b.rows_per_cell, s))
+        first = (s - k) // 2
+        gh = self.grid_shape[0]
+        self._rows_per_cell = k
+        self._row_y = (np.arange(gh)[:, None] * s + first + np.arange(k)[None, :]).ravel()
         self._full_size = (cam.width, cam.height)
 
     # ------------------------------------------------------------------ stages
@@ -127,19 +134,19 @@ class DepthPipeline:
         w[1, b], w[1, a] = 1.0, -self._leak[1]
         return w
 
-    def _detect(self, image, weights, stride, rows, wins):
-        bands = np.empty((2, rows, MAX_BANDS_PER_ROW, bd.N_FIELDS))
-        counts = np.empty((2, rows), np.int64)
-        bd.detect_bands(image, weights, stride, wins, self._scale(image), self._band_params,
+    def _detect(self, image, weights, row_y, wins):
+        bands = np.empty((2, len(row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
+        counts = np.empty((2, len(row_y)), np.int64)
+        bd.detect_bands(image, weights, row_y, wins, self._scale(image), self._band_params,
                         bands, counts)  # fmt: skip
         return bands, counts
 
     def _learn_windows(self, image, weights) -> np.ndarray:
         """Sliding window of the band detector: about two line intervals, learnt per pattern."""
         wide = max(31, image.shape[1] // 12) | 1
-        stride = max(8, image.shape[0] // 48)
-        bands, counts = self._detect(image, weights, stride, image.shape[0] // stride,
-                                     np.array([wide, wide]))  # fmt: skip
+        step = max(8, image.shape[0] // 48)
+        row_y = np.arange(step // 2, image.shape[0], step, dtype=np.int64)
+        bands, counts = self._detect(image, weights, row_y, np.array([wide, wide]))
         wins = np.full(2, wide, np.int64)
         for p in range(2):
             iv = np.concatenate([bands[p, r, : counts[p, r], bd.F_INTERVAL]
@@ -174,10 +181,13 @@ class DepthPipeline:
         t1 = time.perf_counter()
         timings["unmix"] = (t1 - t0) * 1e3
         gh, gw = self.grid_shape
-        bands, counts = self._detect(image, weights, cfg.stride, gh, self._windows)
+        bands, counts = self._detect(image, weights, self._row_y, self._windows)
+        k = self._rows_per_cell
         grids = np.empty((2, len(self._fields), gh, gw))
+        per_row = np.empty((len(self._fields), gh * k, gw))
         for p in range(2):
-            bd.rasterise(bands[p], counts[p], cfg.stride, gw, 0.5, self._fields, grids[p])
+            bd.rasterise(bands[p], counts[p], cfg.stride, gw, 0.5, self._fields, per_row)
+            bd.cell_mean(per_row, k, grids[p])
         t2 = time.perf_counter()
         timings["bands"] = (t2 - t1) * 1e3
         raw, flows, self.blur_px = self.flow_model.combine(grids, cfg.flow)
@@ -200,7 +210,7 @@ class DepthPipeline:
         timings["total"] = (t5 - t0) * 1e3
         self._frames += 1
         result_bands = [
-            _band_set(pat.channel, bands[p], counts[p], cfg.stride)
+            _band_set(pat.channel, bands[p], counts[p], self._row_y)
             for p, (_, pat) in enumerate(self.rig.patterns)
         ]
         return FrameResult(
@@ -215,9 +225,8 @@ class DepthPipeline:
         )
 
 
-def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, stride: int) -> BandSet:
-    rows = np.repeat(np.arange(len(counts)) * stride + 0.5 * (stride - 1), counts)
-    rows = rows.astype(np.float32)
+def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.ndarray) -> BandSet:
+    rows = np.repeat(row_y, counts).astype(np.float32)
     sel = np.concatenate([bands[r, : counts[r]] for r in range(len(counts))]) if len(
         counts
     ) else np.empty((0, bd.N_FIELDS))

@@ -281,7 +281,9 @@ def fit_blur(m, r, line, scale, max_pixels: int = 3000):
     -------
     (a, b) : tuple of float, or None when there are too few bands.
     """
+    # clearly moving bands only: static lines say nothing about the sweep model
     ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & np.isfinite(scale)
+    ok &= m > 1.5 * line + 2.0
     idx = np.flatnonzero(ok)
     if idx.size < 50:
         return None
@@ -303,7 +305,7 @@ def fit_blur(m, r, line, scale, max_pixels: int = 3000):
             fin = np.isfinite(res)
             if fin.sum() < 0.3 * res.size:
                 continue
-            cost = np.median(res[fin]) + 0.5 * (1 - fin.mean())
+            cost = np.median(res[fin])
             if cost < best_cost:
                 best, best_cost = (float(a), float(b)), cost
     return best
