@@ -244,6 +244,13 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_HEIGHT] = height
         out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
         ok = abs(ramp_l - ramp_r) <= sym_tol + 0.25 * max(ramp_l, ramp_r)
+        # a swept line leaves a plateau without dips; print or an edge inside the band does
+        i0 = int(np.ceil(xl + 0.5 * ramp_l))
+        i1 = int(np.floor(xr - 0.5 * ramp_r))
+        for i in range(i0, i1 + 1):
+            if x[i] < bg + 0.6 * height:
+                ok = False
+                break
         # a band running into the image border may be cut: it must visibly end before it
         margin = 2.0 * max(ramp_l, ramp_r) + 4.0
         if x20l - margin < 0 or x20r + margin > n - 1:

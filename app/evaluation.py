@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from lightflow.app.errors import ConfigError
 from lightflow.app.rig import Rig
 

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from lightflow.app.errors import ConfigError
 from lightflow.app.results import BandSet, FrameResult
 

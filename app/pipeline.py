@@ -91,7 +91,8 @@ class DepthPipeline:
             raise ConfigError(
                 f"rig: projectors: the flow ratio does not change with depth on "
                 f"{100 * (1 - usable):.0f} % of the image (parallel projectors, or a single "
-                f"projector with like patterns?): no depth can be measured; see `lightflow rig check`"
+                f"projector with like patterns?): no depth can be measured; "
+                f"see `lightflow rig check`"
             )
         self.flow_model = FlowModel(rig)
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lightflow.app.errors import ConfigError
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX

@@ -26,6 +26,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from lightflow.app.errors import ConfigError, FrameError
 from lightflow.app.rig import Rig, read_json, rig_from_dict
 from lightflow.drivers.base import Frame

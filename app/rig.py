@@ -221,7 +221,9 @@ def _parse_intrinsics(rd: _Reader, d: dict, where: str):
     height = rd.integer(d["height"], f"{where}.height")
     K = rd.matrix(d["K"], f"{where}.K", (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]):
-        raise rd.fail(f"{where}.K", "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        raise rd.fail(
+            f"{where}.K", "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"
+        )
     dist_raw = d["dist"]
     if not isinstance(dist_raw, list) or len(dist_raw) not in DIST_LENGTHS:
         n = len(dist_raw) if isinstance(dist_raw, list) else "not a list"

@@ -38,7 +38,7 @@ SUBPIXEL_PX = 0.25
 #: a typical band (sweep) length in camera pixels (the paper: 10-15 px)
 BAND_PX = 12.0
 #: pixels whose expected depth error exceeds this are "flat"
-MAX_ERROR_M = 0.05
+MAX_ERROR_M = 0.1
 #: same slope floor as build_lut: flatter stretches of h are not inverted
 MIN_SLOPE = 0.02
 #: shortest monotonic stretch (in forward samples) the LUT accepts

@@ -23,6 +23,7 @@ from typing import Protocol
 
 import cv2
 import numpy as np
+
 from lightflow.app.errors import DriverError
 from lightflow.drivers.base import Camera
 

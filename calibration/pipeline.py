@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lightflow.app.errors import CalibrationError, ConfigError
 from lightflow.app.rig import CameraModel, ProjectorModel, Rig, rig_from_dict
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
 from lightflow.app.rig import Rig
 
 #: accuracy bars of a simulated 1600x1200 session (issue 4)

@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from lightflow.app.errors import ConfigError, FrameError
 from lightflow.app.rig import Pattern, _Reader, parse_pattern, read_json
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lightflow.app.geometry import project_points, project_to_projector, undistort_pixels
 from lightflow.app.rig import CameraModel, ProjectorModel, Rig
 

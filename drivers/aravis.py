@@ -24,6 +24,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers.base import Camera, Frame
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
 from lightflow.app.errors import DriverError
 from lightflow.drivers.base import PatternOutput
 

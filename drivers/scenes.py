@@ -74,9 +74,8 @@ BOARD_SPEED = 0.6  # m/s along the optical axis
 def _board(t, texture=0):
     # the row describes motion as centre(t0) + v (t - t0); give the state at t and t0 = t
     z, vz = _triangle(t, 0.6, 0.9, BOARD_SPEED)
-    return np.stack([
-        _rect(2, 0.85, texture, (0.0, 0.0, z - vz * t), (0, 0, vz), (1, 0, 0), (0, 1, 0), 0.34, 0.26)
-    ])  # fmt: skip
+    centre = (0.0, 0.0, z - vz * t)
+    return np.stack([_rect(2, 0.85, texture, centre, (0, 0, vz), (1, 0, 0), (0, 1, 0), 0.34, 0.26)])
 
 
 def _tilted(t):
@@ -101,30 +100,32 @@ def _ball(centre0, v0, t, obj, radius=0.09):
     )  # fmt: skip
 
 
-THROW_PERIOD = 0.5
+THROW_PERIOD = 0.3
+
+
+def _throws(t, balls):
+    """Balls thrown anew every THROW_PERIOD: (obj, centre at throw, velocity, radius)."""
+    t0 = t - (t % THROW_PERIOD)
+    rows = []
+    for obj, c0, v0, radius in balls:
+        c0, v0 = np.asarray(c0, float), np.asarray(v0, float)
+        # centre(t) = c0 + v0 (t - t0) + g (t - t0)^2 / 2, as absolute-time coefficients
+        c_abs = c0 - v0 * t0 + 0.5 * GRAVITY * t0 * t0
+        v_abs = v0 - GRAVITY * t0
+        rows.append(_ball(c_abs, v_abs, t, obj, radius))
+    return np.stack(rows)
 
 
 def _thrown(t):
-    t_local = t % THROW_PERIOD
-    t0 = t - t_local  # restart the throw every period
-    c0 = np.array([-0.12, -0.06, 0.62])
-    v0 = np.array([0.45, -0.3, 0.55])
-    # express as state relative to absolute time: centre(t) = c0 + v0 (t - t0) + g (t - t0)^2 / 2
-    c_abs = c0 - v0 * t0 + 0.5 * GRAVITY * t0 * t0
-    v_abs = v0 - GRAVITY * t0
-    return np.stack([_ball(c_abs, v_abs, t, 2)])
+    # away from the camera from 0.62 to 0.88 m, drifting right and arcing
+    return _throws(t, [(2, (-0.1, -0.03, 0.62), (0.3, -0.5, 0.85), 0.075)])
 
 
 def _two_balls(t):
-    t_local = t % THROW_PERIOD
-    t0 = t - t_local
-    rows = []
-    for obj, c0, v0 in (
-        (2, np.array([-0.14, 0.0, 0.62]), np.array([0.2, -0.45, 0.5])),
-        (3, np.array([0.12, 0.02, 0.9]), np.array([-0.15, -0.4, -0.45])),
-    ):
-        rows.append(_ball(c0 - v0 * t0 + 0.5 * GRAVITY * t0 * t0, v0 - GRAVITY * t0, t, obj, 0.08))
-    return np.stack(rows)
+    return _throws(t, [
+        (2, (-0.13, -0.02, 0.64), (0.25, -0.45, 0.8), 0.065),
+        (3, (0.12, 0.0, 0.88), (-0.2, -0.45, -0.8), 0.065),
+    ])  # fmt: skip
 
 
 FAN_REV_PER_S = 10.0
@@ -137,7 +138,8 @@ def _fan(t):
     omega = 2 * math.pi * FAN_REV_PER_S
     rows = [
         _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.05)), n=(7, (0, 0, -1))),
-        _row(PRIM_DISK, 1, 0.5, 0, c=(4, hub + np.array([0, 0, -0.01])), n=(7, axis), r=(10, (0.045,))),
+        _row(PRIM_DISK, 1, 0.5, 0, c=(4, hub + np.array([0, 0, -0.01])), n=(7, axis),
+             r=(10, (0.045,))),
     ]  # fmt: skip
     for b in range(4):
         rows.append(
@@ -156,9 +158,10 @@ SCENES: dict[str, Scene] = {
         Scene("board", "white board moving along the optical axis, 0.6-0.9 m", 0.02, True, 1.0),
         Scene("textured-board", "printed (newspaper) board moving along the axis", 0.02, True, 1.0),
         Scene("tilted-board", "board tilted 30 deg moving diagonally", 0.02, True, 1.0),
-        Scene("ball", "a thrown ball", 0.008, False, THROW_PERIOD),
+        Scene("ball", "a thrown ball, 0.62-0.88 m", 0.016, False, THROW_PERIOD),
         Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
-        Scene("two-balls", "two thrown balls", 0.008, False, THROW_PERIOD),
+        Scene("two-balls", "two balls thrown in opposite depth directions", 0.016, False,
+              THROW_PERIOD),
     )
 }
 

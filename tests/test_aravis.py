@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 from aravis_sim import SIM_ADDRESS, Simulator, private_netns_problem
+
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers.aravis import (
     AravisCamera,

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from lightflow.app.cli import main
 from lightflow.app.rig import ProjectorModel, Rig, load_rig
 from lightflow.calibration.gamma import measure_response
@@ -97,7 +98,8 @@ def test_compare_rigs_reports_rotation_and_position(small_rig):
                            p.t + [0.002, 0, 0], p.patterns)
     cmp = compare_rigs(Rig(small_rig.camera, (moved, small_rig.projectors[1])), small_rig)
     assert cmp["projectors"]["left"]["rotation_deg"] == pytest.approx(0.5)
-    assert cmp["projectors"]["right"]["rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    # the example rig stores R to 12 digits: a few 1e-5 degrees of rounding
+    assert cmp["projectors"]["right"]["rotation_deg"] == pytest.approx(0.0, abs=1e-3)
     assert not cmp["pass"]
 
 

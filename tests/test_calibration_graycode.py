@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from lightflow.calibration.corners import corners_to_projector, window_size
 from lightflow.calibration.graycode import (
     bit_counts,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+
 from lightflow.app.rig import load_rig
 from lightflow.calibration.live import calibrate_live
 from lightflow.calibration.session import ProjectorSpec, read_session

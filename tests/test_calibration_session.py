@@ -7,6 +7,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+
 from lightflow.app.errors import CalibrationError, ConfigError, FrameError
 from lightflow.calibration.graycode import frame_count
 from lightflow.calibration.pipeline import calibrate_session

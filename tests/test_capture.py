@@ -12,10 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from aravis_sim import SIM_ADDRESS, Simulator, private_netns_problem
+from rerun.chunk import RrdReader
+
 from lightflow.app.cli import main
 from lightflow.app.recording import load_frame, read_recording
 from lightflow.app.rig import load_rig, rig_from_dict
-from rerun.chunk import RrdReader
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"

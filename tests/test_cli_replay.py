@@ -8,11 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
+
 from lightflow.app.cli import main
 from lightflow.app.recording import RecordingWriter, read_recording
 from lightflow.app.rig import load_rig
 from lightflow.drivers.synthetic import SensorModel, SyntheticCamera
-from rerun.chunk import RrdReader
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 N_FRAMES = 3

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 from aravis_sim import Simulator, private_netns_problem
+
 from lightflow.app.cli import main
 from lightflow.app.commands.devices import usb3vision_nodes
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from lightflow.app.cli import main as cli_main
 from lightflow.app.commands.simulate import resolve_rig, simulate_recording
 from lightflow.app.evaluation import evaluate_frame, fit_plane, plane_residuals, pool_metrics

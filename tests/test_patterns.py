@@ -7,6 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
+
 from lightflow.app.cli import main as cli_main
 from lightflow.app.patterns import (
     line_centres,
@@ -16,7 +18,6 @@ from lightflow.app.patterns import (
     pattern_image,
 )
 from lightflow.app.rig import Pattern, load_rig
-from PIL import Image
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
 

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import ImageGrab
+
 from lightflow.app.patterns import pattern_image
 from lightflow.app.rig import load_rig
-from PIL import ImageGrab
 
 try:
     from tests.xserver import start_xorg_two_heads, start_xvfb

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from lightflow.app.cli import main as cli_main
 from lightflow.app.errors import ConfigError, DriverError, FrameError
 from lightflow.app.recording import (

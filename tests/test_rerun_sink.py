@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
+from rerun.chunk import RrdReader
+
 from lightflow.app.errors import ConfigError, DriverError
 from lightflow.app.results import BandSet, FrameResult, RunStats
 from lightflow.app.rig import load_rig
 from lightflow.app.sinks.rerun_sink import RerunSink
 from lightflow.drivers.base import Frame
-from rerun.chunk import RrdReader
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 

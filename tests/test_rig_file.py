@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lightflow.app.cli import main as cli_main
 from lightflow.app.errors import ConfigError
 from lightflow.app.rig import load_rig, save_rig

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lightflow.app.depth_model import DepthRange, h_function
 from lightflow.app.errors import ConfigError
 from lightflow.app.rig import load_rig, rig_from_dict
@@ -88,7 +89,9 @@ def test_example_rigs_are_usable(example_reports, name):
     assert report.problem is None and report.usable
     assert report.coverage > 0.5
     at = {st.z: st for st in report.stats}
-    assert at[0.75].median_error_mm < 30
+    # per pixel, before any smoothing, for a 1/4 px band error; the two-projector example
+    # trades some slope for flows that stay similar across the view (coverage)
+    assert at[0.75].median_error_mm < 45
     assert at[0.75].median_slope > 0.3
     # closer is steeper and more precise (h changes like 1/z)
     assert at[0.5].median_error_mm < at[0.75].median_error_mm < at[1.0].median_error_mm
@@ -166,10 +169,10 @@ def test_slope_is_the_derivative_of_h(example_reports):
     xy = np.array([[0.0, 0.0], [0.1, -0.05]])
     h = [h_function(rig_, xy, np.full(2, z)) for z in (0.74, 0.76)]
     slope = np.abs(h[1] - h[0]) / 0.02
-    # grid pixel (x = 800, y = 600) is near the optical axis
+    # grid cell (row 3, column 4) is centred on pixel (4 * 200 + 99.5, 3 * 200 + 99.5)
     cx, cy = rig_.camera.K[0, 2], rig_.camera.K[1, 2]
     fx = rig_.camera.K[0, 0]
-    xy_grid = np.array([[(800 - cx) / fx, (600 - cy) / fx]])
+    xy_grid = np.array([[(899.5 - cx) / fx, (699.5 - cy) / fx]])
     expected = (
         np.abs(
             h_function(rig_, xy_grid, np.array([0.7501]))

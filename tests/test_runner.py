@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lightflow.app.errors import DeviceLostError, DriverError, FrameError
 from lightflow.app.exposure import BlurAwareExposure, measure_bands, settle_exposure
 from lightflow.app.pipeline import DepthPipeline, PipelineConfig

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from lightflow.app.cli import main as cli_main
 from lightflow.app.commands.simulate import resolve_rig
 from lightflow.app.errors import ConfigError

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lightflow.app.geometry import camera_rays
 from lightflow.app.recording import load_frame, read_recording
 from lightflow.app.results import FrameResult, RunStats

@@ -85,6 +85,7 @@ def run_live(args: argparse.Namespace) -> int:
     import threading
 
     import numpy as np
+
     from lightflow.app.commands.project import parse_screens
     from lightflow.app.errors import ConfigError
     from lightflow.app.rig import load_rig

@@ -9,6 +9,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+
 from lightflow.app.errors import ConfigError, DriverError
 
 HELP = "render a moving scene, reconstruct its depth and show it (no hardware needed)"

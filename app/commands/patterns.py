@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 import cv2
+
 from lightflow.app.errors import ConfigError
 from lightflow.app.patterns import line_centres, pattern_image
 from lightflow.app.rig import load_rig

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 import cv2
+
 from lightflow.app.depth_model import DepthRange
 from lightflow.app.errors import ConfigError
 from lightflow.app.rig import load_rig

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+
 from lightflow.app.errors import FrameError
 from lightflow.app.geometry import camera_rays
 from lightflow.app.results import FrameResult, RunStats

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+
 from lightflow.app.errors import ConfigError, DriverError
 from lightflow.app.geometry import camera_rays
 from lightflow.app.results import FrameResult, RunStats
