@@ -128,7 +128,11 @@ class DepthPipeline:
             self._leak[:] = float(cfg.crosstalk)
         elif self._frames % cfg.crosstalk_every == 0:
             # a property of the rig, not of a frame: refresh now and then, smoothed
-            leak = np.array([bd.estimate_leak(image, a, b), bd.estimate_leak(image, b, a)])
+            wins = self._windows if self._windows is not None else (61, 61)
+            leak = np.array([
+                bd.estimate_leak(image, a, b, (wins[0], wins[1])),
+                bd.estimate_leak(image, b, a, (wins[1], wins[0])),
+            ])  # fmt: skip
             self._leak = leak if self._frames == 0 else 0.7 * self._leak + 0.3 * leak
         w = np.zeros((2, 3))
         w[0, a], w[0, b] = 1.0, -self._leak[0]

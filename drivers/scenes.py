@@ -209,13 +209,14 @@ def newspaper_texture(seed: int = 7, width: int = 1400, height: int = 1000) -> n
                 tex[y : y + hgt, x0:x1] = np.kron(block, np.ones((8, 8)))[:hgt, : x1 - x0]
                 y += hgt + 10
                 continue
-            # a text line: words of glyph-like blobs
+            # a line of body text: words of glyphs, thin strokes (about 15 % ink)
             x = x0
             while x < x1 - 10:
-                wl = rng.integers(12, 60)
-                wl = min(wl, x1 - x)
-                word = rng.random((6, wl)) < 0.55
-                tex[y : y + 6, x : x + wl][word[: height - y]] = ink
-                x += wl + rng.integers(5, 9)
-            y += 10
+                n_glyphs = int(rng.integers(2, 9))
+                wl = min(4 * n_glyphs, x1 - x)
+                glyphs = rng.random((5, wl)) < 0.3
+                glyphs[:, 3::4] = False  # letter spacing
+                tex[y : y + 5, x : x + wl][glyphs[: height - y]] = ink
+                x += wl + int(rng.integers(3, 6))
+            y += 8
     return tex
