@@ -56,7 +56,7 @@ class BandParams:
     """
 
     min_contrast: float = 0.025
-    interval_tolerance: float = 0.2
+    interval_tolerance: float = 0.35
     symmetry_tolerance_px: float = 1.5
     min_gap_px: float = 1.0
     vertical_extra: int = 0
@@ -93,33 +93,42 @@ def _crossing_right(x, j, level):
 
 @nb.njit(cache=True)
 def _sliding_mid(x, win, out):
-    """(max + min) / 2 over a centred window of ``win`` samples (van Herk / Gil-Werman)."""
+    """(max + min) / 2 over a centred window of about ``win`` samples.
+
+    Only a segmentation level is needed, so it is computed on blocks of
+    ``win // 8`` samples (block maxima and minima, then a sliding window over
+    blocks), which costs one pass over the row.
+    """
     n = x.shape[0]
-    r = win // 2
-    gmax = np.empty(n)
-    gmin = np.empty(n)
-    hmax = np.empty(n)
-    hmin = np.empty(n)
-    for j in range(n):
-        if j % win == 0:
-            gmax[j] = x[j]
-            gmin[j] = x[j]
-        else:
-            gmax[j] = max(gmax[j - 1], x[j])
-            gmin[j] = min(gmin[j - 1], x[j])
-    for j in range(n - 1, -1, -1):
-        if j == n - 1 or (j + 1) % win == 0:
-            hmax[j] = x[j]
-            hmin[j] = x[j]
-        else:
-            hmax[j] = max(hmax[j + 1], x[j])
-            hmin[j] = min(hmin[j + 1], x[j])
-    for j in range(n):
-        lo = max(0, j - r)
-        hi = min(n - 1, j + r)
-        mx = max(hmax[lo], gmax[hi])
-        mn = min(hmin[lo], gmin[hi])
-        out[j] = 0.5 * (mx + mn)
+    q = max(1, win // 8)
+    nb_ = (n + q - 1) // q
+    bmax = np.empty(nb_)
+    bmin = np.empty(nb_)
+    for b in range(nb_):
+        lo = b * q
+        hi = min(n, lo + q)
+        mx = x[lo]
+        mn = x[lo]
+        for j in range(lo + 1, hi):
+            v = x[j]
+            if v > mx:
+                mx = v
+            elif v < mn:
+                mn = v
+        bmax[b] = mx
+        bmin[b] = mn
+    r = max(1, (win // q) // 2)
+    for b in range(nb_):
+        mx = bmax[b]
+        mn = bmin[b]
+        for c in range(max(0, b - r), min(nb_, b + r + 1)):
+            if bmax[c] > mx:
+                mx = bmax[c]
+            if bmin[c] < mn:
+                mn = bmin[c]
+        mid = 0.5 * (mx + mn)
+        for j in range(b * q, min(n, b * q + q)):
+            out[j] = mid
 
 
 @nb.njit(cache=True)
@@ -175,6 +184,9 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_VALID] = 0.0
         a = seg_a[k]
         b = seg_b[k]
+        # the segment's extent, refined below when the band can be measured
+        out[k, F_START] = a
+        out[k, F_END] = b
         if a == 0 or b == n - 1:
             continue  # needs a gap on both sides
         # background: mean of the middle half of each neighbouring gap
@@ -516,28 +528,9 @@ def estimate_leak(
     row_y = np.arange(step // 2, img.shape[0], step, dtype=np.int64)
     out = np.empty(len(row_y) * 24)
     n = _leak_ratios(img, target, source, row_y, int(windows[0]) | 1, int(windows[1]) | 1, out)
-    if n < 20:  # the patterns leave no clean gaps: fall back to the lower envelope
-        return _envelope_leak(img, target, source)
-    return float(np.clip(np.median(out[:n]), 0.0, 0.3))
-
-
-def _envelope_leak(img: np.ndarray, target: int, source: int, step: int = 8) -> float:
-    # where the target pattern is dark the target channel holds ambient light and the
-    # leak: the lower envelope of target against source has the leak as its slope
-    t = img[::step, ::step, target].astype(np.float32).ravel()
-    s = img[::step, ::step, source].astype(np.float32).ravel()
-    hi = np.percentile(s, 99.5)
-    lo = np.percentile(s, 5)
-    if hi - lo < 8 * (1 if img.dtype == np.uint8 else 257):
-        return 0.0
-    edges = np.linspace(lo, hi, 13)
-    idx = np.digitize(s, edges) - 1
-    xs, ys = [], []
-    for b in range(12):
-        sel = t[idx == b]
-        if sel.size >= 30:
-            xs.append(0.5 * (edges[b] + edges[b + 1]))
-            ys.append(np.percentile(sel, 3))
-    if len(xs) < 4:
-        return 0.0
-    return float(np.clip(np.polyfit(xs, ys, 1)[0], 0.0, 0.3))
+    if n < 40:  # too few clean gaps in this frame: no estimate
+        return float("nan")
+    q25, q50, q75 = np.percentile(out[:n], [25, 50, 75])
+    if q75 - q25 > 0.04:  # the samples disagree: the gaps were not clean
+        return float("nan")
+    return float(np.clip(q50, 0.0, 0.15))

@@ -99,6 +99,7 @@ class DepthPipeline:
         cam = rig.camera
         self.grid_shape = self.lut.h0.shape
         self._leak = np.zeros(2)
+        self._leak_known = np.zeros(2, dtype=bool)
         self._windows: np.ndarray | None = None
         self._frames = 0
         self.blur_px: list[float] = [np.nan, np.nan]
@@ -129,11 +130,15 @@ class DepthPipeline:
         elif self._frames % cfg.crosstalk_every == 0:
             # a property of the rig, not of a frame: refresh now and then, smoothed
             wins = self._windows if self._windows is not None else (61, 61)
-            leak = np.array([
+            est = np.array([
                 bd.estimate_leak(image, a, b, (wins[0], wins[1])),
                 bd.estimate_leak(image, b, a, (wins[1], wins[0])),
             ])  # fmt: skip
-            self._leak = leak if self._frames == 0 else 0.7 * self._leak + 0.3 * leak
+            # a frame without clean gaps keeps the last estimate (0 until there is one)
+            fresh = np.isfinite(est)
+            blended = np.where(self._leak_known, 0.7 * self._leak + 0.3 * est, est)
+            self._leak = np.where(fresh, blended, self._leak)
+            self._leak_known |= fresh
         w = np.zeros((2, 3))
         w[0, a], w[0, b] = 1.0, -self._leak[0]
         w[1, b], w[1, a] = 1.0, -self._leak[1]

@@ -106,15 +106,16 @@ def _intersect(p, ox, oy, oz, dx, dy, dz, t, tex):
         cz = p[6] + p[9] * t + 0.5 * p[12] * t * t
         r = p[13]
         lx, ly, lz = ox - cx, oy - cy, oz - cz
+        qa = _dot(dx, dy, dz, dx, dy, dz)  # camera rays are not unit length
         b = _dot(lx, ly, lz, dx, dy, dz)
         c = _dot(lx, ly, lz, lx, ly, lz) - r * r
-        disc = b * b - c
+        disc = b * b - qa * c
         if disc < 0:
             return inf, 0.0, 0.0, 0.0, 0.0
         sq = math.sqrt(disc)
-        s = -b - sq
+        s = (-b - sq) / qa
         if s <= EPS:
-            s = -b + sq
+            s = (-b + sq) / qa
             if s <= EPS:
                 return inf, 0.0, 0.0, 0.0, 0.0
         hx = ox + s * dx - cx

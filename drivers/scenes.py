@@ -117,14 +117,14 @@ def _throws(t, balls):
 
 
 def _thrown(t):
-    # away from the camera from 0.62 to 0.88 m, drifting right and arcing
-    return _throws(t, [(2, (-0.1, -0.03, 0.62), (0.3, -0.5, 0.85), 0.075)])
+    # thrown away from the camera, 0.68 -> 0.85 m, drifting right and arcing
+    return _throws(t, [(2, (-0.06, -0.05, 0.68), (0.15, -0.4, 0.6), 0.1)])
 
 
 def _two_balls(t):
     return _throws(t, [
-        (2, (-0.13, -0.02, 0.64), (0.25, -0.45, 0.8), 0.065),
-        (3, (0.12, 0.0, 0.88), (-0.2, -0.45, -0.8), 0.065),
+        (2, (-0.12, -0.04, 0.7), (0.1, -0.4, 0.55), 0.085),
+        (3, (0.13, -0.02, 0.88), (-0.1, -0.4, -0.55), 0.085),
     ])  # fmt: skip
 
 
@@ -158,9 +158,9 @@ SCENES: dict[str, Scene] = {
         Scene("board", "white board moving along the optical axis, 0.6-0.9 m", 0.02, True, 1.0),
         Scene("textured-board", "printed (newspaper) board moving along the axis", 0.02, True, 1.0),
         Scene("tilted-board", "board tilted 30 deg moving diagonally", 0.02, True, 1.0),
-        Scene("ball", "a thrown ball, 0.62-0.88 m", 0.016, False, THROW_PERIOD),
+        Scene("ball", "a thrown ball, 0.68-0.85 m", 0.02, False, THROW_PERIOD),
         Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
-        Scene("two-balls", "two balls thrown in opposite depth directions", 0.016, False,
+        Scene("two-balls", "two balls thrown in opposite depth directions", 0.02, False,
               THROW_PERIOD),
     )
 }

@@ -1,0 +1,378 @@
+"""Band detector on exactly rendered band profiles, and the colour-leak estimate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lightflow.app.bands import (
+    F_CENTRE,
+    F_INTERVAL,
+    F_LENGTH,
+    F_VALID,
+    N_FIELDS,
+    detect_bands,
+    estimate_leak,
+)
+from lightflow.app.profile_model import pixel_value, tables
+
+PARAMS = np.array([0.025, 0.2, 1.5, 1.0, 0.0])
+WEIGHTS = np.array([[1.0, 0.0, 0.0]])
+AMP = 80.0
+BG = 10.0
+MAX_BANDS = 96
+FIRST = 30.0  # centre of the first band
+
+
+def band_row(n, centres, L, w, sigma, amp=AMP, bg=BG):
+    """One image row: background plus pixel-integrated bands centred at ``centres``."""
+    v = np.full(n, bg)
+    reach = int(0.5 * (L + w) + 6 * sigma + 3)
+    for c in centres:
+        for j in range(max(0, int(c) - reach), min(n, int(c) + reach + 2)):
+            v[j] += amp * pixel_value(j - c, L, w, sigma)
+    return v
+
+
+def centres_for(interval, count, phase=0.0):
+    return FIRST + phase + interval * np.arange(count)
+
+
+def detect_rows(rows, interval):
+    """Run the detector on each row of ``rows`` (R, W); per row, its bands (n, N_FIELDS)."""
+    rows = np.atleast_2d(rows)
+    img = np.ascontiguousarray(np.repeat(rows[:, :, None], 3, axis=2), dtype=np.float64)
+    n_rows = rows.shape[0]
+    bands = np.empty((1, n_rows, MAX_BANDS, N_FIELDS))
+    counts = np.empty((1, n_rows), np.int64)
+    wins = np.array([int(2 * interval) | 1], np.int64)
+    row_y = np.arange(n_rows, dtype=np.int64)
+    detect_bands(img, WEIGHTS, row_y, wins, 255.0, PARAMS, bands, counts)
+    return [bands[0, r, : counts[0, r]].copy() for r in range(n_rows)]
+
+
+def detect_row(v, interval):
+    """The brief's layout: a (3, W, 3) float image holding the same row three times."""
+    img = np.ascontiguousarray(np.repeat(np.repeat(v[None, :, None], 3, 0), 3, 2))
+    bands = np.empty((1, 1, MAX_BANDS, N_FIELDS))
+    counts = np.empty((1, 1), np.int64)
+    detect_bands(img, WEIGHTS, np.array([1], np.int64), np.array([int(2 * interval) | 1], np.int64),
+                 255.0, PARAMS, bands, counts)  # fmt: skip
+    return bands[0, 0, : counts[0, 0]].copy()
+
+
+def render_and_detect(L, w, sigma, interval, phase, count=8):
+    c = centres_for(interval, count, phase)
+    v = band_row(int(c[-1] + 40), c, L, w, sigma)
+    b = detect_row(v, interval)
+    assert len(b) == count, f"expected {count} bands, got {len(b)}"
+    assert np.allclose(b[:, F_CENTRE], c, atol=0.05)
+    return b
+
+
+def gap_for(L, w, sigma):
+    """Interval with a clean background gap (as the profile tables are built)."""
+    return L + 3 * w + 8 * sigma + 10
+
+
+# ------------------------------------------------------------------ width at half height
+
+
+LONG = [  # (L, w, sigma): L >= 2 w + 8 sigma (worst case over 20 phases in the comment)
+    (20.0, 3.0, 1.0),  # 0.000
+    (12.5, 1.5, 0.6),  # 0.044: sharp ramps, linear interpolation between samples
+    (17.5, 2.0, 0.8),  # 0.026
+    (21.3, 3.0, 1.0),  # 0.013
+    (24.0, 5.0, 1.2),  # 0.004
+    (30.0, 6.0, 1.4),  # 0.021
+    (28.0, 7.0, 0.6),  # 0.005
+    (18.0, 1.5, 1.6),  # 0.002
+]
+
+
+@pytest.mark.parametrize("L,w,sigma", LONG)
+def test_long_band_width_equals_sweep(L, w, sigma):
+    worst = 0.0
+    for phase in (0.0, 0.13, 0.37, 0.5, 0.71, 0.93):
+        B = gap_for(L, w, sigma) + 0.29  # non-integer: every band has its own phase
+        b = render_and_detect(L, w, sigma, B, phase)
+        assert np.all(b[:, F_VALID] == 1.0)
+        worst = max(worst, np.max(np.abs(b[:, F_LENGTH] - L)))
+        assert np.all(np.abs(b[1:-1, F_INTERVAL] - B) <= 0.05)
+    print(f"\nL={L} w={w} sigma={sigma}: max |m - L| = {worst:.4f} px")
+    assert worst <= 0.05
+
+
+# L just above w + 5 sigma: measured m overshoots by up to 0.3 px
+JUST_LONG = [(10.5, 7.0, 0.6), (9.5, 6.0, 0.6), (14.0, 7.0, 0.8), (8.0, 1.5, 1.2), (10.5, 5.0, 1.0)]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="bands.py: the plateau is the mean over the central half of the band; for "
+    "w + 5 sigma < L < ~2 w + 8 sigma that window reaches the rounded shoulders, the height is "
+    "underestimated and m overshoots L by up to 0.3 px (e.g. L=10.5, w=7, sigma=0.6: +0.22 px "
+    "mean, +0.32 px worst phase)",
+)
+def test_width_equals_sweep_for_all_bands_longer_than_line_plus_5_sigma():
+    errs = []
+    for L, w, sigma in JUST_LONG:
+        assert L > w + 5 * sigma
+        for phase in np.arange(8) / 8:
+            b = render_and_detect(L, w, sigma, gap_for(L, w, sigma), phase)
+            errs.append((np.max(np.abs(b[:, F_LENGTH] - L)), L, w, sigma, phase))
+    worst = max(errs)
+    print(f"\nworst |m - L| = {worst[0]:.3f} px at L={worst[1]} w={worst[2]} sigma={worst[3]}")
+    assert worst[0] <= 0.05
+
+
+# ------------------------------------------------------------------ sweep from m
+
+
+def test_true_length_recovers_sweep():
+    """4 <= L <= 30, w in [1.5, 7], sigma in [0.6, 1.6]; here only L >= 6 and L >= w + 5 sigma."""
+    rng = np.random.default_rng(21)
+    t = tables()
+    worst = (0.0,)
+    n_cases = 0
+    while n_cases < 40:
+        L = rng.uniform(4.0, 30.0)
+        w = rng.uniform(1.5, 7.0)
+        sigma = rng.uniform(0.6, 1.6)
+        if L < 6.0 or L < w + 5 * sigma:
+            continue
+        n_cases += 1
+        B = gap_for(L, w, sigma) + rng.uniform(0.0, 6.0)
+        b = render_and_detect(L, w, sigma, B, rng.uniform())
+        assert np.all(b[:, F_VALID] == 1.0)
+        rec = t.true_length(b[:, F_LENGTH], w, sigma)
+        rel = np.abs(rec - L) / L
+        assert np.all(np.isfinite(rel))
+        worst = max(worst, (rel.max(), L, w, sigma))
+    print(f"\ntrue_length: worst relative error {100 * worst[0]:.2f} % "
+          f"(L={worst[1]:.2f}, w={worst[2]:.2f}, sigma={worst[3]:.2f})")  # fmt: skip
+    assert worst[0] <= 0.015
+
+
+# short bands that still count as moving (L > 0.6 w + 1) and have an invertible m(L)
+SHORT = [(4.0, 3.0, 1.6), (4.0, 2.0, 1.6), (5.0, 4.0, 1.4), (4.0, 3.0, 0.6), (4.5, 3.0, 1.6)]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="bands.py: for short bands the plateau window [ceil(xl + m/4), floor(xr - m/4)] "
+    "holds 0 or 1 whole pixels, so the height (and m) jumps with the sub-pixel phase by ~0.2 px; "
+    "the tables average 4 phases, so single bands are off by up to 7 % (L=4, w=3, sigma=1.6)",
+)
+def test_true_length_recovers_short_sweeps_at_every_phase():
+    t = tables()
+    errs = []
+    for L, w, sigma in SHORT:
+        for phase in np.arange(8) / 8:
+            b = render_and_detect(L, w, sigma, gap_for(L, w, sigma), phase)
+            rec = t.true_length(b[1:-1, F_LENGTH], w, sigma)
+            errs.append((float(np.max(np.abs(rec - L) / L)), L, w, sigma, phase))
+    worst = max(errs)
+    print(f"\nshort bands: worst {100 * worst[0]:.1f} % at L={worst[1]} w={worst[2]} "
+          f"sigma={worst[3]} phase={worst[4]}")  # fmt: skip
+    assert worst[0] <= 0.015
+
+
+# ------------------------------------------------------------------ interval
+
+
+@pytest.mark.parametrize(
+    "L,w,sigma,B",
+    [
+        (6.0, 3.0, 1.0, 17.3),
+        (10.0, 2.0, 0.8, 23.85),
+        (20.0, 3.0, 1.2, 40.1),
+        (30.0, 5.0, 1.0, 61.7),
+    ],
+)
+def test_interval_equals_line_spacing(L, w, sigma, B):
+    for phase in (0.0, 0.4, 0.8):
+        b = render_and_detect(L, w, sigma, B, phase, count=10)
+        inner = b[1:-1]
+        assert np.all(inner[:, F_VALID] == 1.0)
+        err = np.abs(inner[:, F_INTERVAL] - B)
+        assert err.max() <= 0.05, err.max()
+        # the outermost bands extrapolate their interval from one side
+        assert np.all(np.abs(b[[0, -1], F_INTERVAL] - B) <= 0.05)
+
+
+# ------------------------------------------------------------------ rejections
+
+
+_TOUCHING = pytest.mark.xfail(
+    strict=True,
+    reason="bands.py: a band's background is taken from the middle of the neighbouring 'gaps'; "
+    "when bands touch or overlap that level is the sum of two ramps, so m, height and ramps are "
+    "measured against an elevated background, the support test (m + ramps/0.6 <= interval - "
+    "min_gap) passes and the band is valid with m 4-21 % short (L=18, w=5, sigma=1.4, B=20: "
+    "m=14.2); "
+    "with heavier overlap the bright overlap regions are reported as valid short bands",
+)
+
+
+def _overlap_case(B, w, sigma, over, marks=()):
+    name = f"B{B:g}-w{w:g}-s{sigma:g}-over{over:+g}"
+    return pytest.param(B, w, sigma, over, marks=marks, id=name)
+
+
+@pytest.mark.parametrize(
+    "B,w,sigma,over",  # over = L + w - B
+    [
+        _overlap_case(30.0, 3.0, 1.0, -1.0, _TOUCHING),
+        _overlap_case(30.0, 3.0, 1.0, 0.0, _TOUCHING),
+        _overlap_case(30.0, 3.0, 1.0, 2.0, _TOUCHING),
+        _overlap_case(30.0, 3.0, 1.0, 3.0),
+        _overlap_case(30.0, 3.0, 1.0, 5.0, _TOUCHING),
+        _overlap_case(20.0, 5.0, 1.4, 0.0, _TOUCHING),
+        _overlap_case(20.0, 5.0, 1.4, 3.0, _TOUCHING),
+        _overlap_case(20.0, 5.0, 1.4, 5.0),
+        _overlap_case(20.0, 2.0, 0.7, 5.0, _TOUCHING),
+    ],
+)
+def test_overlapping_bands_are_invalid(B, w, sigma, over):
+    L = B - w + over
+    c = centres_for(B, 12, 0.3)
+    v = band_row(int(c[-1] + 40), c, L, w, sigma)
+    b = detect_row(v, B)
+    valid = b[:, F_VALID] == 1.0
+    print(f"\nL={L:g} w={w:g} B={B:g}: {len(b)} bands, {valid.sum()} valid, "
+          f"m of valid {np.round(b[valid, F_LENGTH], 2)[:4]}")  # fmt: skip
+    assert not valid.any()
+
+
+def test_bands_with_a_clean_gap_next_to_the_overlap_cases_are_valid():
+    """Sanity check of the overlap setup: the same lines with a flat gap are all measured."""
+    for B, w, sigma, L in [(30.0, 3.0, 1.0, 17.0), (20.0, 2.0, 0.7, 10.0), (30.0, 5.0, 1.4, 11.0)]:
+        assert L + w + 8 * sigma + 2 <= B
+        b = render_and_detect(L, w, sigma, B, 0.3, count=12)
+        assert np.all(b[:, F_VALID] == 1.0)
+
+
+_CUT_VALID = pytest.mark.xfail(
+    strict=True,
+    reason="bands.py: a band cut by a hard edge past its centre stays valid with a wrong "
+    "length (m=11.2 instead of 20): the cut side's 50->20 % ramp is ~0.3 px against ~1.2 px, "
+    "but the symmetry test allows symmetry_tolerance_px (1.5) + 25 %, more than the whole ramp; "
+    "the one-sided interval test does not catch it either",
+)
+
+
+@pytest.mark.parametrize(
+    "cut",
+    [
+        pytest.param(-0.3, id="cut-before-centre"),
+        pytest.param(0.1, marks=_CUT_VALID, id="cut-just-past-centre"),
+        pytest.param(0.25, marks=_CUT_VALID, id="cut-at-three-quarters"),
+        pytest.param(0.4, marks=_CUT_VALID, id="cut-near-end"),
+    ],
+)
+def test_band_cut_by_hard_edge_is_invalid(cut):
+    L, w, sigma, B = 20.0, 3.0, 1.0, 40.0
+    c = centres_for(B, 10, 0.3)
+    v = band_row(int(c[-1] + 40), c, L, w, sigma)
+    k = 6
+    x_cut = int(c[k] + cut * L)
+    v[x_cut:] = BG
+    b = detect_row(v, B)
+    # the far neighbours are untouched
+    far = b[np.abs(b[:, F_CENTRE] - c[k]) > 1.5 * B]
+    assert len(far) == k - 1
+    assert np.all(far[:, F_VALID] == 1.0)
+    assert np.all(np.abs(far[:, F_LENGTH] - L) <= 0.05)
+    cut_band = b[np.nanargmax(b[:, F_CENTRE])]
+    assert abs(cut_band[F_CENTRE] - c[k]) < L / 2
+    print(f"\ncut at centre{cut * L:+.0f} px: cut band m={cut_band[F_LENGTH]:.2f} "
+          f"valid={cut_band[F_VALID]:.0f}")  # fmt: skip
+    assert cut_band[F_VALID] == 0.0
+
+
+def test_band_with_dip_in_plateau_is_invalid():
+    L, w, sigma, B = 20.0, 3.0, 1.0, 40.0
+    c = centres_for(B, 10, 0.3)
+    v = band_row(int(c[-1] + 40), c, L, w, sigma)
+    k = 5
+    j = int(c[k])
+    v[j - 1 : j + 2] *= 0.3  # a stroke of print across the band
+    b = detect_row(v, B)
+    near = np.abs(b[:, F_CENTRE] - c[k]) < L / 2
+    assert near.any()
+    assert np.all(b[near, F_VALID] == 0.0)
+    far = np.abs(b[:, F_CENTRE] - c[k]) > 1.5 * B
+    assert far.sum() == len(c) - 3
+    assert np.all(b[far, F_VALID] == 1.0)
+    assert np.all(np.abs(b[far, F_LENGTH] - L) <= 0.05)
+
+
+def test_noise_leaves_median_width_unbiased():
+    L, w, sigma, B = 14.0, 3.0, 1.0, 37.3
+    c = centres_for(B, 26, 0.3)
+    v = band_row(int(c[-1] + 40), c, L, w, sigma)
+    clean = detect_rows(v, B)[0]
+    m_clean = np.median(clean[clean[:, F_VALID] == 1.0, F_LENGTH])
+    rng = np.random.default_rng(3)
+    noisy = v[None, :] + rng.normal(0.0, 1.5, (40, v.size))
+    per_row = detect_rows(noisy, B)
+    allb = np.concatenate(per_row)
+    valid = allb[allb[:, F_VALID] == 1.0]
+    m_noisy = np.median(valid[:, F_LENGTH])
+    print(f"\nnoise 1.5 DN on {AMP:g}: {len(valid)}/{len(allb)} bands valid, median m "
+          f"{m_noisy:.3f} vs {m_clean:.3f} noise-free (L={L:g}), "
+          f"sd {np.std(valid[:, F_LENGTH]):.3f}")  # fmt: skip
+    assert len(valid) >= 0.9 * 40 * len(c)
+    assert abs(m_noisy - m_clean) <= 0.1
+    assert abs(np.median(valid[:, F_INTERVAL]) - B) <= 0.05
+
+
+# ------------------------------------------------------------------ colour leak
+
+LEAK_RB = 0.04  # blue light seen by the red channel
+LEAK_BR = 0.03  # red light seen by the blue channel
+
+
+def _slanted_bands(H, W, B, L, w, sigma, offset, slant):
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    d = (xx - offset - slant * yy + B / 2) % B - B / 2
+    return np.vectorize(pixel_value)(d, L, w, sigma)
+
+
+@pytest.fixture(scope="module")
+def two_pattern_light():
+    """Red and blue band patterns at different positions, with an albedo ramp (no leak yet).
+
+    Short bands at wide intervals, slanted differently: many bands of one pattern
+    fall into clean gaps of the other.
+    """
+    H, W = 240, 800
+    albedo = 60.0 + 120.0 * (np.arange(H)[:, None] / H)
+    red = albedo * _slanted_bands(H, W, 44.0, 6.0, 2.5, 1.0, 5.0, 0.13)
+    blue = albedo * _slanted_bands(H, W, 38.0, 5.0, 2.5, 1.0, 11.0, -0.07)
+    return red, blue
+
+
+def _camera_image(red, blue, ambient=8.0):
+    R = ambient + red + LEAK_RB * blue
+    G = ambient + 0.05 * (red + blue)
+    Bc = ambient + blue + LEAK_BR * red
+    return np.stack([R, G, Bc], axis=-1)
+
+
+@pytest.mark.parametrize("kind", ["uint8", "uint16", "float"])
+def test_estimate_leak(two_pattern_light, kind):
+    img = _camera_image(*two_pattern_light)
+    rng = np.random.default_rng(4)
+    img = img + rng.normal(0.0, 1.0, img.shape)
+    if kind == "uint8":
+        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    elif kind == "uint16":
+        img = np.clip(np.rint(img * 257.0), 0, 65535).astype(np.uint16)
+    rb = estimate_leak(img, 0, 2)
+    br = estimate_leak(img, 2, 0)
+    print(f"\n{kind}: leak blue->red {rb:.4f} (true {LEAK_RB}), "
+          f"red->blue {br:.4f} (true {LEAK_BR})")  # fmt: skip
+    assert abs(rb - LEAK_RB) <= 0.01
+    assert abs(br - LEAK_BR) <= 0.01
