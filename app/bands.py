@@ -56,7 +56,7 @@ class BandParams:
     """
 
     min_contrast: float = 0.025
-    interval_tolerance: float = 0.35
+    interval_tolerance: float = 0.25
     symmetry_tolerance_px: float = 1.5
     min_gap_px: float = 1.0
     vertical_extra: int = 0
@@ -133,18 +133,34 @@ def _sliding_mid(x, win, out):
 
 @nb.njit(cache=True)
 def _row_signals(img, y0, y1, weights, out):
-    """Average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``."""
+    """Average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``.
+
+    Each pattern uses at most two channels (its own and the leaking one), so
+    only the non-zero weights are read.
+    """
     h, w = img.shape[0], img.shape[1]
     n_p = weights.shape[0]
     out[:, :] = 0.0
-    for y in range(y0, y1 + 1):
-        yy = min(max(y, 0), h - 1)
-        for j in range(w):
-            r = np.float64(img[yy, j, 0])
-            g = np.float64(img[yy, j, 1])
-            b = np.float64(img[yy, j, 2])
-            for p in range(n_p):
-                out[p, j] += weights[p, 0] * r + weights[p, 1] * g + weights[p, 2] * b
+    for p in range(n_p):
+        # the (at most two) channels with a weight
+        c0 = -1
+        c1 = -1
+        for c in range(3):
+            if weights[p, c] != 0.0:
+                if c0 < 0:
+                    c0 = c
+                else:
+                    c1 = c
+        w0 = weights[p, c0] if c0 >= 0 else 0.0
+        w1 = weights[p, c1] if c1 >= 0 else 0.0
+        for y in range(y0, y1 + 1):
+            yy = min(max(y, 0), h - 1)
+            if c1 >= 0:
+                for j in range(w):
+                    out[p, j] += w0 * img[yy, j, c0] + w1 * img[yy, j, c1]
+            elif c0 >= 0:
+                for j in range(w):
+                    out[p, j] += w0 * img[yy, j, c0]
     inv = 1.0 / (y1 - y0 + 1)
     for p in range(n_p):
         for j in range(w):
@@ -331,36 +347,42 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
 
 
 @nb.njit(cache=True, parallel=True)
-def detect_bands(img, weights, row_y, wins, scale, params, bands, counts):
+def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=1):
     """Detect the bands of every pattern on the image rows ``row_y``.
 
     Each row is measured on its own (optionally averaged with ``params[4]`` rows
     on each side): lines on tilted or curved surfaces are slanted, and combining
-    rows before measuring would smear them.
+    rows before measuring would smear them.  Rows come in groups of ``group``
+    neighbours (one grid cell) that share one segmentation level, which only
+    has to separate bands from gaps and changes little from row to row.
 
     Parameters
     ----------
     img : (H, W, 3) uint8/uint16/float array
     weights : (P, 3) float64, per pattern the channel unmixing weights
-    row_y : (R,) int64, image rows to measure
+    row_y : (R,) int64, image rows to measure (R a multiple of ``group``)
     wins : (P,) int64, window of the sliding mid-level (about 2 line intervals)
     scale : float, full-scale value of the image (255, 65535)
     params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, extra rows
     bands : (P, R, max_bands, N_FIELDS) float64 output
     counts : (P, R) int64 output
+    group : int
     """
     w = img.shape[1]
     n_p = weights.shape[0]
     v = int(params[4])
-    for i in nb.prange(row_y.shape[0]):
+    for g in nb.prange(row_y.shape[0] // group):
         x = np.empty((n_p, w))
-        thr = np.empty(w)
-        _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
-        for p in range(n_p):
-            _sliding_mid(x[p], wins[p], thr)
-            counts[p, i] = _bands_in_row(
-                x[p], thr, params[0] * scale, params[2], params[3], params[1], bands[p, i]
-            )
+        thr = np.empty((n_p, w))
+        for q in range(group):
+            i = g * group + q
+            _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
+            for p in range(n_p):
+                if q == 0:
+                    _sliding_mid(x[p], wins[p], thr[p])
+                counts[p, i] = _bands_in_row(
+                    x[p], thr[p], params[0] * scale, params[2], params[3], params[1], bands[p, i]
+                )
 
 
 @nb.njit(cache=True, parallel=True)

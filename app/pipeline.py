@@ -144,11 +144,11 @@ class DepthPipeline:
         w[1, b], w[1, a] = 1.0, -self._leak[1]
         return w
 
-    def _detect(self, image, weights, row_y, wins):
+    def _detect(self, image, weights, row_y, wins, group=1):
         bands = np.empty((2, len(row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
         counts = np.empty((2, len(row_y)), np.int64)
         bd.detect_bands(image, weights, row_y, wins, self._scale(image), self._band_params,
-                        bands, counts)  # fmt: skip
+                        bands, counts, group)  # fmt: skip
         return bands, counts
 
     def _learn_windows(self, image, weights) -> np.ndarray:
@@ -191,7 +191,9 @@ class DepthPipeline:
         t1 = time.perf_counter()
         timings["unmix"] = (t1 - t0) * 1e3
         gh, gw = self.grid_shape
-        bands, counts = self._detect(image, weights, self._row_y, self._windows)
+        bands, counts = self._detect(
+            image, weights, self._row_y, self._windows, self._rows_per_cell
+        )
         k = self._rows_per_cell
         grids = np.empty((2, len(self._fields), gh, gw))
         per_row = np.empty((len(self._fields), gh * k, gw))

@@ -62,10 +62,21 @@ def detect_row(v, interval):
 
 
 def render_and_detect(L, w, sigma, interval, phase, count=8):
+    """Bands of one rendered row, one per rendered line, in order.
+
+    Any further segment the detector reports (a ripple of the flat background)
+    must be marked invalid.
+    """
     c = centres_for(interval, count, phase)
     v = band_row(int(c[-1] + 40), c, L, w, sigma)
     b = detect_row(v, interval)
-    assert len(b) == count, f"expected {count} bands, got {len(b)}"
+    centre = b[:, F_CENTRE]
+    match = [np.flatnonzero(np.abs(centre - ck) < 0.25 * interval) for ck in c]
+    assert all(len(m) == 1 for m in match), f"lines at {c} -> bands at {centre}"
+    idx = np.concatenate(match)
+    extra = np.setdiff1d(np.arange(len(b)), idx)
+    assert np.all(b[extra, F_VALID] == 0.0)
+    b = b[idx]
     assert np.allclose(b[:, F_CENTRE], c, atol=0.05)
     return b
 
