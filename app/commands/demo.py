@@ -23,15 +23,15 @@ line patterns blurred by the motion, with sensor noise), reconstruct its depth
 with the same pipeline as `lightflow capture`, and compare with the ground
 truth.  With a display, the results open in a Rerun viewer; without one (or
 with --no-viewer) they are written to OUT/demo.rrd, to open later with
-`rerun OUT/demo.rrd`.  Runs in well under a minute on two cores with the
-defaults."""
+`rerun OUT/demo.rrd`.  Runs in under a minute on two cores with the
+defaults (the first run also builds and caches the depth tables)."""
 
 EPILOG = """\
 scenes: board, textured-board, tilted-board, ball, fan, two-balls
 examples:
   lightflow demo                                    # fan, two projectors
   lightflow demo --scene ball --rig single-projector --frames 6
-  lightflow demo --scale 1 --frames 20 --out out/   # full resolution, slower"""
+  lightflow demo --scale 0.5 --frames 20 --out out/ # half resolution, faster per frame"""
 
 
 def register(subparsers) -> None:
@@ -45,16 +45,16 @@ def register(subparsers) -> None:
     p.add_argument("--scene", default="fan", help="built-in scene (default fan)")
     p.add_argument("--rig", default="two-projector", metavar="NAME|PATH",
                    help="two-projector, single-projector or a rig file (default two-projector)")
-    p.add_argument("--frames", type=int, default=4, metavar="N",
-                   help="frames to render (default 4)")
-    p.add_argument("--scale", type=float, default=0.5, metavar="S",
-                   help="camera resolution relative to the rig's (default 0.5)")
+    p.add_argument("--frames", type=int, default=3, metavar="N",
+                   help="frames to render (default 3; each takes a few seconds to simulate)")
+    p.add_argument("--scale", type=float, default=1.0, metavar="S",
+                   help="camera resolution relative to the rig's (default 1: 1600x1200)")
     p.add_argument("--out", default="out", metavar="DIR",
                    help="where demo.rrd goes when no viewer is shown (default out/)")
     p.add_argument("--no-viewer", action="store_true",
                    help="write OUT/demo.rrd even when a display is available")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of the scene (default 30)")
-    p.set_defaults(func=run, stride=2, smoothing=None)
+    p.set_defaults(func=run, stride=4, smoothing=None)
 
 
 class AccuracySink:

@@ -46,8 +46,8 @@ def add_output_options(p: argparse.ArgumentParser, rerun_required: bool = False)
 
 def add_pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--stride", type=int, choices=(1, 2, 4), default=2,
-        help="analysis grid stride in pixels (1 = finest, slowest; default 2)",
+        "--stride", type=int, choices=(1, 2, 4), default=4,
+        help="analysis grid stride in pixels (1 = finest, slowest; default 4)",
     )  # fmt: skip
     p.add_argument(
         "--smoothing", type=float, metavar="PX",
