@@ -57,7 +57,7 @@ class BandParams:
 
     min_contrast: float = 0.025
     interval_tolerance: float = 0.25
-    symmetry_tolerance_px: float = 1.5
+    symmetry_tolerance_px: float = 0.3
     min_gap_px: float = 1.0
     vertical_extra: int = 0
     rows_per_cell: int = 4
@@ -93,7 +93,7 @@ def _crossing_right(x, j, level):
 
 @nb.njit(cache=True)
 def _sliding_mid(x, win, out):
-    """(max + min) / 2 over a centred window of about ``win`` samples.
+    """``out[0]``: (max + min) / 2, ``out[1]``: min, over a centred window of about ``win``.
 
     Only a segmentation level is needed, so it is computed on blocks of
     ``win // 8`` samples (block maxima and minima, then a sliding window over
@@ -128,7 +128,8 @@ def _sliding_mid(x, win, out):
                 mn = bmin[c]
         mid = 0.5 * (mx + mn)
         for j in range(b * q, min(n, b * q + q)):
-            out[j] = mid
+            out[0, j] = mid
+            out[1, j] = mn
 
 
 @nb.njit(cache=True)
@@ -168,6 +169,34 @@ def _row_signals(img, y0, y1, weights, out):
 
 
 @nb.njit(cache=True)
+def _gap_level(x, g0, g1):
+    """Background of a gap (mean of its middle half) and how V-shaped that middle is.
+
+    Returns ``(level, dip)`` where ``dip`` is the mean of the outer thirds of the
+    middle half minus the mean of its central third: about zero for a flat gap,
+    large for the notch between two touching bands.
+    """
+    q = (g1 - g0 + 1) // 4
+    a = g0 + q
+    b = g1 - q
+    total = 0.0
+    for i in range(a, b + 1):
+        total += x[i]
+    n = b - a + 1
+    level = total / n
+    if n < 6:
+        return level, 0.0
+    t = n // 3
+    outer = 0.0
+    inner = 0.0
+    for i in range(t):
+        outer += x[a + i] + x[b - i]
+    for i in range(a + t, b - t + 1):
+        inner += x[i]
+    return level, outer / (2 * t) - inner / (b - t - (a + t) + 1)
+
+
+@nb.njit(cache=True)
 def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
     n = x.shape[0]
@@ -178,9 +207,9 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     ns = 0
     j = 0
     while j < n and ns < max_b + 1:
-        if x[j] > thr[j]:
+        if x[j] > thr[0, j]:
             a = j
-            while j < n and x[j] > thr[j]:
+            while j < n and x[j] > thr[0, j]:
                 j += 1
             b = j - 1
             # noise on a low ramp can dip below the level for a sample or two:
@@ -212,20 +241,8 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
         if gl1 < gl0 or gr1 < gr0:
             continue
-        bl = 0.0
-        c = 0
-        q = (gl1 - gl0 + 1) // 4
-        for i in range(gl0 + q, gl1 - q + 1):
-            bl += x[i]
-            c += 1
-        bl /= c
-        br = 0.0
-        c = 0
-        q = (gr1 - gr0 + 1) // 4
-        for i in range(gr0 + q, gr1 - q + 1):
-            br += x[i]
-            c += 1
-        br /= c
+        bl, vl = _gap_level(x, gl0, gl1)
+        br, vr = _gap_level(x, gr0, gr1)
         # first pass: half of the maximum
         jm = a
         for i in range(a, b + 1):
@@ -277,7 +294,15 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_END] = xr
         out[k, F_HEIGHT] = height
         out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
-        ok = abs(ramp_l - ramp_r) <= sym_tol + 0.25 * max(ramp_l, ramp_r)
+        # equal ramps: a band cut by an edge has one sharp side
+        ok = abs(ramp_l - ramp_r) <= sym_tol + 0.3 * max(ramp_l, ramp_r)
+        # the gaps must reach the floor: between touching bands the "gap" is two ramps
+        # and its level is well above the lowest level around
+        if bg - thr[1, jm] > 0.25 * height:
+            ok = False
+        # ... and a V-shaped gap (two ramps meeting) is lower in its middle than around
+        if max(vl, vr) > 0.12 * height:
+            ok = False
         # a swept line leaves a plateau without dips; print or an edge inside the band does
         i0 = int(np.ceil(xl + 0.5 * ramp_l))
         i1 = int(np.floor(xr - 0.5 * ramp_r))
@@ -373,7 +398,7 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
     v = int(params[4])
     for g in nb.prange(row_y.shape[0] // group):
         x = np.empty((n_p, w))
-        thr = np.empty((n_p, w))
+        thr = np.empty((n_p, 2, w))
         for q in range(group):
             i = g * group + q
             _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
@@ -490,7 +515,7 @@ def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
     w = img.shape[1]
     ts = np.empty(w)
     ss = np.empty(w)
-    thr = np.empty(w)
+    thr = np.empty((2, w))
     bt = np.empty((MAX_LEAK_BANDS, N_FIELDS))
     bs = np.empty((MAX_LEAK_BANDS, N_FIELDS))
     n_out = 0
@@ -499,9 +524,9 @@ def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
             ts[j] = img[y, j, target]
             ss[j] = img[y, j, source]
         _sliding_mid(ts, win_t, thr)
-        nt = _bands_in_row(ts, thr, 0.0, 1.5, 1.0, 0.2, bt)
+        nt = _bands_in_row(ts, thr, 0.0, 0.3, 1.0, 0.25, bt)
         _sliding_mid(ss, win_s, thr)
-        ns = _bands_in_row(ss, thr, 0.0, 1.5, 1.0, 0.2, bs)
+        ns = _bands_in_row(ss, thr, 0.0, 0.3, 1.0, 0.25, bs)
         for k in range(ns):
             if bs[k, F_VALID] <= 0 or n_out >= out.shape[0]:
                 continue

@@ -93,7 +93,7 @@ def _simulate_detector(L, w, sigma, phase, out2):
             if abs(d) < reach:  # the profile is zero (to 1e-9) further out
                 v += pixel_value(d, L, w, sigma)
         x[j] = 5.0 + 100.0 * v
-    thr = np.empty(n)
+    thr = np.empty((2, n))
     _sliding_mid(x, int(2.2 * B) | 1, thr)
     out = np.empty((8, 8))
     ns = _bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, out)

@@ -11,12 +11,16 @@ from lightflow.app.bands import (
     F_LENGTH,
     F_VALID,
     N_FIELDS,
+    BandParams,
     detect_bands,
     estimate_leak,
 )
 from lightflow.app.profile_model import pixel_value, tables
 
-PARAMS = np.array([0.025, 0.2, 1.5, 1.0, 0.0])
+_B = BandParams()
+# the detector's defaults
+PARAMS = np.array([_B.min_contrast, _B.interval_tolerance, _B.symmetry_tolerance_px,
+                   _B.min_gap_px, _B.vertical_extra], dtype=np.float64)  # fmt: skip
 WEIGHTS = np.array([[1.0, 0.0, 0.0]])
 AMP = 80.0
 BG = 10.0
@@ -264,22 +268,13 @@ def test_bands_with_a_clean_gap_next_to_the_overlap_cases_are_valid():
         assert np.all(b[:, F_VALID] == 1.0)
 
 
-_CUT_VALID = pytest.mark.xfail(
-    strict=True,
-    reason="bands.py: a band cut by a hard edge past its centre stays valid with a wrong "
-    "length (m=11.2 instead of 20): the cut side's 50->20 % ramp is ~0.3 px against ~1.2 px, "
-    "but the symmetry test allows symmetry_tolerance_px (1.5) + 25 %, more than the whole ramp; "
-    "the one-sided interval test does not catch it either",
-)
-
-
 @pytest.mark.parametrize(
     "cut",
     [
         pytest.param(-0.3, id="cut-before-centre"),
-        pytest.param(0.1, marks=_CUT_VALID, id="cut-just-past-centre"),
-        pytest.param(0.25, marks=_CUT_VALID, id="cut-at-three-quarters"),
-        pytest.param(0.4, marks=_CUT_VALID, id="cut-near-end"),
+        pytest.param(0.1, id="cut-just-past-centre"),
+        pytest.param(0.25, id="cut-at-three-quarters"),
+        pytest.param(0.4, id="cut-near-end"),
     ],
 )
 def test_band_cut_by_hard_edge_is_invalid(cut):
