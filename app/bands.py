@@ -60,7 +60,7 @@ class BandParams:
     symmetry_tolerance_px: float = 0.3
     min_gap_px: float = 1.0
     vertical_extra: int = 0
-    rows_per_cell: int = 4
+    rows_per_cell: int = 2
 
 
 @nb.njit(cache=True, inline="always")
@@ -223,6 +223,9 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         else:
             j += 1
     ns = min(ns, max_b)
+    gap_lv = np.empty(ns + 1)
+    gap_dp = np.empty(ns + 1)
+    gap_done = np.zeros(ns + 1, np.bool_)
     for k in range(ns):
         for f in range(N_FIELDS):
             out[k, f] = np.nan
@@ -241,8 +244,14 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
         if gl1 < gl0 or gr1 < gr0:
             continue
-        bl, vl = _gap_level(x, gl0, gl1)
-        br, vr = _gap_level(x, gr0, gr1)
+        # each gap serves two bands: measure it once
+        if not gap_done[k]:
+            gap_lv[k], gap_dp[k] = _gap_level(x, gl0, gl1)
+            gap_done[k] = True
+        gap_lv[k + 1], gap_dp[k + 1] = _gap_level(x, gr0, gr1)
+        gap_done[k + 1] = True
+        bl, vl = gap_lv[k], gap_dp[k]
+        br, vr = gap_lv[k + 1], gap_dp[k + 1]
         # first pass: half of the maximum
         jm = a
         for i in range(a, b + 1):
@@ -411,6 +420,46 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
 
 
 @nb.njit(cache=True, parallel=True)
+def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
+    """:func:`rasterise` for ``k`` measured rows per grid cell, averaged (NaN ignored).
+
+    ``out[f, i, j]``: field ``fields[f]`` of grid cell (i, j).
+    """
+    nf = fields.shape[0]
+    cells = counts.shape[0] // k
+    for i in nb.prange(cells):
+        buf = np.empty((nf, 1, gw))
+        acc = np.zeros((nf, gw))
+        n = np.zeros(gw, np.int64)
+        for q in range(k):
+            _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf)
+            for j in range(gw):
+                if not np.isnan(buf[0, 0, j]):
+                    n[j] += 1
+                    for f in range(nf):
+                        acc[f, j] += buf[f, 0, j]
+        for j in range(gw):
+            for f in range(nf):
+                out[f, i, j] = acc[f, j] / n[j] if n[j] else np.nan
+
+
+@nb.njit(cache=True)
+def pack_bands(bands, counts, row_y, rows, starts, ends, valid):
+    """Copy the measured bands (those with an extent) into flat arrays; returns the count."""
+    m = 0
+    for r in range(counts.shape[0]):
+        for q in range(counts[r]):
+            if np.isnan(bands[r, q, F_START]):
+                continue
+            rows[m] = row_y[r]
+            starts[m] = bands[r, q, F_START]
+            ends[m] = bands[r, q, F_END]
+            valid[m] = bands[r, q, F_VALID] > 0
+            m += 1
+    return m
+
+
+@nb.njit(cache=True, parallel=True)
 def cell_mean(maps, k, out):
     """Average ``k`` consecutive measured rows into one grid row, ignoring NaN."""
     nf, rows, gw = maps.shape
@@ -467,6 +516,41 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
         j = b + 1 + int(reach * maps[interval_field, i, b] / stride) + 1
 
 
+@nb.njit(cache=True)
+def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
+    """Rasterise measured row ``r`` into ``maps[:, 0, :]`` (see :func:`rasterise`)."""
+    nf = fields.shape[0]
+    off = 0.5 * (stride - 1)
+    i = 0
+    for f in range(nf):
+        for j in range(gw):
+            maps[f, i, j] = np.nan
+    prev = -1
+    n = counts[r]
+    for k in range(n):
+        if bands[r, k, F_VALID] <= 0:
+            continue
+        if prev >= 0:
+            c0 = bands[r, prev, F_CENTRE]
+            c1 = bands[r, k, F_CENTRE]
+            if 0.0 < c1 - c0 <= 1.6 * max(bands[r, prev, F_INTERVAL], bands[r, k, F_INTERVAL]):
+                j0 = int(np.ceil((c0 - off) / stride))
+                j1 = int(np.floor((c1 - off) / stride))
+                for j in range(max(j0, 0), min(j1, gw - 1) + 1):
+                    t = (j * stride + off - c0) / (c1 - c0)
+                    for f in range(nf):
+                        v0 = bands[r, prev, fields[f]]
+                        maps[f, i, j] = v0 + t * (bands[r, k, fields[f]] - v0)
+        # a band without partner still marks its own grid sample
+        c = bands[r, k, F_CENTRE]
+        jc = int(np.floor((c - off) / stride + 0.5))
+        if 0 <= jc < gw and np.isnan(maps[0, i, jc]):
+            for f in range(nf):
+                maps[f, i, jc] = bands[r, k, fields[f]]
+        prev = k
+    _extend_runs(maps, i, gw, stride, reach, 1)
+
+
 @nb.njit(cache=True, parallel=True)
 def rasterise(bands, counts, stride, gw, reach, fields, maps):
     """Interpolate band fields along each row onto the grid columns.
@@ -476,37 +560,10 @@ def rasterise(bands, counts, stride, gw, reach, fields, maps):
     1.6 intervals apart and extrapolated linearly ``reach`` intervals beyond
     the ends of each run; elsewhere NaN.
     """
-    rows = counts.shape[0]
-    nf = fields.shape[0]
-    off = 0.5 * (stride - 1)
-    for i in nb.prange(rows):
-        for f in range(nf):
-            for j in range(gw):
-                maps[f, i, j] = np.nan
-        prev = -1
-        n = counts[i]
-        for k in range(n):
-            if bands[i, k, F_VALID] <= 0:
-                continue
-            if prev >= 0:
-                c0 = bands[i, prev, F_CENTRE]
-                c1 = bands[i, k, F_CENTRE]
-                if 0.0 < c1 - c0 <= 1.6 * max(bands[i, prev, F_INTERVAL], bands[i, k, F_INTERVAL]):
-                    j0 = int(np.ceil((c0 - off) / stride))
-                    j1 = int(np.floor((c1 - off) / stride))
-                    for j in range(max(j0, 0), min(j1, gw - 1) + 1):
-                        t = (j * stride + off - c0) / (c1 - c0)
-                        for f in range(nf):
-                            v0 = bands[i, prev, fields[f]]
-                            maps[f, i, j] = v0 + t * (bands[i, k, fields[f]] - v0)
-            # a band without partner still marks its own grid sample
-            c = bands[i, k, F_CENTRE]
-            jc = int(np.floor((c - off) / stride + 0.5))
-            if 0 <= jc < gw and np.isnan(maps[0, i, jc]):
-                for f in range(nf):
-                    maps[f, i, jc] = bands[i, k, fields[f]]
-            prev = k
-        _extend_runs(maps, i, gw, stride, reach, 1)
+    for r in nb.prange(counts.shape[0]):
+        _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps[:, r : r + 1, :])
+
+
 
 
 @nb.njit(cache=True)

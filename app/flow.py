@@ -44,7 +44,7 @@ class FlowParams:
     smoothing_px: float = 10.0
     static_factor: float = 0.6
     static_margin_px: float = 1.0
-    fill_fraction: float = 0.6
+    fill_fraction: float = 0.45
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
 
@@ -124,6 +124,8 @@ class FlowModel:
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
         self.frames = 0
+        #: per pattern, the blur sigma (camera px) at the median magnification
+        self.blur_px = [float("nan"), float("nan")]
         self.kinds = np.array([_KIND[pat.kind] for _, pat in self.pairs], dtype=np.int64)
         self.steps = np.array(
             [pat.pitch_px if pat.kind == "uniform" else _exp2_step(pat) for _, pat in self.pairs]
@@ -181,13 +183,7 @@ class FlowModel:
             W_STEP, M_STEP, params.static_factor, params.static_margin_px, log_ratio, flows,
         )  # fmt: skip
         self.frames += 1
-        blur = []
-        for p in range(2):
-            B = grids[p, 1]
-            med = np.nanmedian(B[::4, ::4]) if np.isfinite(B[::4, ::4]).any() else np.nan
-            scale = med / self.steps[p] if self.kinds[p] == 0 else 1.0
-            blur.append(float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * scale**2)))
-        return log_ratio, [flows[0], flows[1]], blur
+        return log_ratio, [flows[0], flows[1]], list(self.blur_px)
 
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model of each pattern on a subsample of this frame's bands."""
@@ -205,6 +201,9 @@ class FlowModel:
                 if fitted is not None:
                     self.blur[p] = fitted
                     self._fitted = True
+                # for display: the blur at the median magnification
+                med = np.nanmedian(scale) if np.isfinite(scale).any() else 1.0
+                self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
 
 
 def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) -> np.ndarray:
@@ -235,7 +234,8 @@ def smooth_log_ratio(
         return log_ratio
     first = masked_smooth(log_ratio, sigma)
     resid = np.abs(log_ratio - first)
-    finite = resid[np.isfinite(resid)]
+    sample = resid[::2, ::2]  # the spread of the residuals, from a quarter of them
+    finite = sample[np.isfinite(sample)]
     if finite.size < 16:
         return first
     mad = float(np.median(finite)) * 1.4826 + 1e-6

@@ -117,6 +117,11 @@ class DepthPipeline:
         gh = self.grid_shape[0]
         self._rows_per_cell = k
         self._row_y = (np.arange(gh)[:, None] * s + first + np.arange(k)[None, :]).ravel()
+        # per-frame scratch (about 10 MB), reused: results only keep copies out of it
+        self._buffers = (
+            np.empty((2, len(self._row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS)),
+            np.empty((2, len(self._row_y)), np.int64),
+        )
         self._full_size = (cam.width, cam.height)
 
     # ------------------------------------------------------------------ stages
@@ -144,9 +149,12 @@ class DepthPipeline:
         w[1, b], w[1, a] = 1.0, -self._leak[1]
         return w
 
-    def _detect(self, image, weights, row_y, wins, group=1):
-        bands = np.empty((2, len(row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
-        counts = np.empty((2, len(row_y)), np.int64)
+    def _detect(self, image, weights, row_y, wins, group=1, out=None):
+        if out is None:
+            bands = np.empty((2, len(row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
+            counts = np.empty((2, len(row_y)), np.int64)
+        else:
+            bands, counts = out
         bd.detect_bands(image, weights, row_y, wins, self._scale(image), self._band_params,
                         bands, counts, group)  # fmt: skip
         return bands, counts
@@ -192,14 +200,12 @@ class DepthPipeline:
         timings["unmix"] = (t1 - t0) * 1e3
         gh, gw = self.grid_shape
         bands, counts = self._detect(
-            image, weights, self._row_y, self._windows, self._rows_per_cell
+            image, weights, self._row_y, self._windows, self._rows_per_cell, self._buffers
         )
         k = self._rows_per_cell
         grids = np.empty((2, len(self._fields), gh, gw))
-        per_row = np.empty((len(self._fields), gh * k, gw))
         for p in range(2):
-            bd.rasterise(bands[p], counts[p], cfg.stride, gw, 0.5, self._fields, per_row)
-            bd.cell_mean(per_row, k, grids[p])
+            bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
         t2 = time.perf_counter()
         timings["bands"] = (t2 - t1) * 1e3
         raw, flows, self.blur_px = self.flow_model.combine(grids, cfg.flow)
@@ -238,15 +244,10 @@ class DepthPipeline:
 
 
 def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.ndarray) -> BandSet:
-    rows = np.repeat(row_y, counts).astype(np.float32)
-    sel = np.concatenate([bands[r, : counts[r]] for r in range(len(counts))]) if len(
-        counts
-    ) else np.empty((0, bd.N_FIELDS))
-    ok = np.isfinite(sel[:, bd.F_START])
-    return BandSet(
-        channel,
-        rows[ok],
-        sel[ok, bd.F_START].astype(np.float32),
-        sel[ok, bd.F_END].astype(np.float32),
-        sel[ok, bd.F_VALID] > 0,
-    )
+    n = int(counts.sum())
+    rows = np.empty(n, np.float32)
+    starts = np.empty(n, np.float32)
+    ends = np.empty(n, np.float32)
+    valid = np.empty(n, np.bool_)
+    m = bd.pack_bands(bands, counts, row_y, rows, starts, ends, valid)
+    return BandSet(channel, rows[:m], starts[:m], ends[:m], valid[:m])
