@@ -40,7 +40,20 @@ test: setup
 	$(NETNS) sh -c 'ip link set lo up && exec $(BIN)/python -m pytest -q $(PYTEST_ARGS)'
 
 bench: setup
-	$(BIN)/lightflow bench
+	$(BIN)/lightflow bench --frames 30
+	$(BIN)/lightflow bench --recorder --frames 5
+
+# Accuracy on synthetic recordings (1600x1200): the table and the plot in the README.
+EVAL := out/eval
+SCENES := board textured-board tilted-board fan ball two-balls
+eval: setup
+	rm -rf $(EVAL) && mkdir -p $(EVAL)
+	for s in $(SCENES); do $(BIN)/lightflow simulate --scene $$s --rig two-projector --frames 3 --out $(EVAL)/$$s; done
+	$(BIN)/lightflow simulate --scene board --rig single-projector --frames 3 --out $(EVAL)/board-single
+	$(BIN)/lightflow simulate --scene board --rig app/rigs/two-projector-distorted.json --frames 3 --out $(EVAL)/board-distorted
+	for e in 0.005 0.01 0.015 0.02 0.025; do $(BIN)/lightflow simulate --scene board --exposure $$e --frames 2 --out $(EVAL)/exposure-$$e; done
+	$(BIN)/lightflow eval $(EVAL)/board $(EVAL)/board-single $(EVAL)/board-distorted $(foreach s,$(filter-out board,$(SCENES)),$(EVAL)/$(s))
+	$(BIN)/lightflow eval $(EVAL)/exposure-* --plot $(EVAL)/exposure.png
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
