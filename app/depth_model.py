@@ -35,7 +35,8 @@ from .patterns import _exp2_step
 from .rig import Rig
 
 LUT_VERSION = 4
-#: z samples per pixel in the LUT (100 bytes/pixel with the two scalars: 184 MB at 1600x1200)
+#: inverse-depth samples per pixel in the LUT (96 bytes/pixel with the two scalars: 184 MB
+#: at 1600x1200 with stride 1)
 LUT_SAMPLES = 22
 #: forward samples of h(z) used to find the monotonic stretch
 FORWARD_SAMPLES = 96

@@ -341,6 +341,24 @@ def load_rig(path: str | Path) -> Rig:
     return rig_from_dict(_read_json(path), str(path))
 
 
+#: the example rigs shipped with lightflow, by name
+EXAMPLE_RIGS_DIR = Path(__file__).resolve().parent / "rigs"
+EXAMPLE_RIGS = ("two-projector", "single-projector", "two-projector-distorted")
+
+
+def resolve_rig(spec: str | Path) -> Rig:
+    """Load a rig from a file path, or one of the example rigs by name (``two-projector``)."""
+    spec = str(spec)
+    if spec in EXAMPLE_RIGS:
+        return load_rig(EXAMPLE_RIGS_DIR / f"{spec}.json")
+    if not Path(spec).exists():
+        raise ConfigError(
+            f"{spec}: file not found (expected a rig file or an example rig: "
+            f"{', '.join(EXAMPLE_RIGS)})"
+        )
+    return load_rig(spec)
+
+
 def save_rig(rig: Rig, path: str | Path) -> None:
     """Write a rig file atomically."""
     path = Path(path)

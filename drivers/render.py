@@ -202,6 +202,30 @@ def _project_u(pp, X, Y, Z):
 
 
 @nb.njit(cache=True)
+def _lit_by(prims, tex, pp, centre, size, X, Y, Z, nx, ny, nz, t):
+    """Whether projector ``pp`` lights the point: ``(u, cos incidence, distance^2)``.
+
+    ``cos incidence`` is 0 when the point faces away, falls outside the panel or
+    lies in the shadow of another primitive.
+    """
+    lx = centre[0] - X
+    ly = centre[1] - Y
+    lz = centre[2] - Z
+    dist2 = lx * lx + ly * ly + lz * lz
+    dist = math.sqrt(dist2)
+    cosi = (nx * lx + ny * ly + nz * lz) / dist
+    if cosi <= 0:
+        return 0.0, 0.0, dist2
+    u, v = _project_u(pp, X, Y, Z)
+    if not (u >= -0.5 and u <= size[0] - 0.5 and v >= -0.5 and v <= size[1] - 0.5):
+        return u, 0.0, dist2
+    ss, sp, _a, _b, _c, _d = _trace(prims, X, Y, Z, lx / dist, ly / dist, lz / dist, t, tex, dist)
+    if sp >= 0 and ss > 1e-5:
+        return u, 0.0, dist2  # shadowed
+    return u, cosi, dist2
+
+
+@nb.njit(cache=True)
 def _line_light(foot, u, sigma):
     """Light of a line set (footprints ``(n, 2)``) at column ``u`` with Gaussian defocus."""
     n = foot.shape[0]
@@ -272,24 +296,11 @@ def render_exposure(
                 acc1 += alb * ambient[1]
                 acc2 += alb * ambient[2]
                 for q in range(n_proj):
-                    lx = proj_centre[q, 0] - X
-                    ly = proj_centre[q, 1] - Y
-                    lz = proj_centre[q, 2] - Z
-                    dist2 = lx * lx + ly * ly + lz * lz
-                    dist = math.sqrt(dist2)
-                    cosi = (nx * lx + ny * ly + nz * lz) / dist
-                    if cosi <= 0:
-                        continue
-                    u, v = _project_u(projs[q], X, Y, Z)
-                    if not (u >= -0.5 and u <= proj_size[q, 0] - 0.5):
-                        continue
-                    if not (v >= -0.5 and v <= proj_size[q, 1] - 0.5):
-                        continue
-                    ss, sp, _a, _b, _c, _d = _trace(
-                        prims, X, Y, Z, lx / dist, ly / dist, lz / dist, t, tex, dist
+                    u, cosi, dist2 = _lit_by(
+                        prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
                     )
-                    if sp >= 0 and ss > 1e-5:
-                        continue  # shadowed
+                    if cosi <= 0.0:
+                        continue
                     irr = alb * proj_power[q] * cosi / dist2
                     for m in range(n_pat):
                         if pat_proj[m] != q:
@@ -328,23 +339,11 @@ def render_truth(rays, prims, tex, projs, proj_centre, proj_size, t, depth, obj,
                 nx, ny, nz = -nx, -ny, -nz
             bits = 0
             for q in range(n_proj):
-                lx = proj_centre[q, 0] - X
-                ly = proj_centre[q, 1] - Y
-                lz = proj_centre[q, 2] - Z
-                dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-                if (nx * lx + ny * ly + nz * lz) <= 0:
-                    continue
-                u, v = _project_u(projs[q], X, Y, Z)
-                if not (u >= -0.5 and u <= proj_size[q, 0] - 0.5):
-                    continue
-                if not (v >= -0.5 and v <= proj_size[q, 1] - 0.5):
-                    continue
-                ss, sp, _a, _b, _c, _d = _trace(
-                    prims, X, Y, Z, lx / dist, ly / dist, lz / dist, t, tex, dist
+                u, cosi, _ = _lit_by(
+                    prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
                 )
-                if sp >= 0 and ss > 1e-5:
-                    continue
-                bits |= 1 << q
+                if cosi > 0.0:
+                    bits |= 1 << q
             lit[i, j] = bits
 
 

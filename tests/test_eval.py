@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.commands.simulate import resolve_rig, simulate_recording
+from lightflow.app.commands.simulate import simulate_recording
 from lightflow.app.evaluation import evaluate_frame, fit_plane, plane_residuals, pool_metrics
 from lightflow.app.plot import Series, line_plot, nice_ticks
 from lightflow.app.recording import RecordingWriter
+from lightflow.app.rig import resolve_rig
 from lightflow.drivers.base import Frame
 from lightflow.drivers.synthetic import GroundTruth
 

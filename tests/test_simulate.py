@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.commands.simulate import resolve_rig
 from lightflow.app.errors import ConfigError
 from lightflow.app.recording import load_frame, read_recording
+from lightflow.app.rig import resolve_rig
 from lightflow.calibration.session import read_session
 from lightflow.drivers.synthetic import GroundTruth
 
@@ -75,7 +75,7 @@ def test_help_lists_scenes(capsys):
     [
         (["--exposure", "0.05"], "longer than the frame period"),
         (["--frames", "0"], "--frames"),
-        (["--rig", "no-such-rig"], "--rig no-such-rig: no such file"),
+        (["--rig", "no-such-rig"], "no-such-rig: file not found"),
         ([], "give --scene"),
     ],
 )
@@ -112,5 +112,5 @@ def test_resolve_rig_by_name_and_path(tmp_path):
     rig = resolve_rig("two-projector")
     assert (rig.camera.width, rig.camera.height) == (1600, 1200)
     assert len(resolve_rig("single-projector").projectors) == 1
-    with pytest.raises(ConfigError, match="no such file"):
+    with pytest.raises(ConfigError, match="file not found"):
         resolve_rig(tmp_path / "missing.json")

@@ -84,8 +84,8 @@ def stage_table(timings: list[dict[str, float]], wall_ms: list[float]) -> list[s
 
 
 def run(args: argparse.Namespace) -> int:
-    from lightflow.app.commands.simulate import resolve_rig
     from lightflow.app.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.rig import resolve_rig
     from lightflow.drivers.synthetic import SyntheticCamera
 
     if args.frames < 1:

@@ -88,14 +88,14 @@ def run_live(args: argparse.Namespace) -> int:
 
     from lightflow.app.commands.project import parse_screens
     from lightflow.app.errors import ConfigError
-    from lightflow.app.rig import load_rig
+    from lightflow.app.rig import resolve_rig
     from lightflow.calibration.live import calibrate_live
     from lightflow.calibration.session import Board, ProjectorSpec
 
     if args.rig is None or args.screens is None:
         raise ConfigError("calibrate --camera: also give --rig (projector sizes and patterns) "
                           "and --screens")
-    rig = load_rig(args.rig)
+    rig = resolve_rig(args.rig)
     board = Board.parse(args.board)
     specs = [ProjectorSpec(p.name, p.width, p.height, p.patterns) for p in rig.projectors]
     selectors = parse_screens(args.screens, [p.name for p in specs])

@@ -97,7 +97,7 @@ def parse_exposure(text: str | None) -> float | str | None:
 def run(args: argparse.Namespace) -> int:
     from lightflow.app.exposure import BlurAwareExposure, settle_exposure
     from lightflow.app.recording import RecordingWriter
-    from lightflow.app.rig import load_rig
+    from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
     from lightflow.app.status import StatusLine
     from lightflow.drivers import open_camera
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     scheme = args.camera.partition(":")[0]
     if args.rig is None and scheme != "replay":
         raise ConfigError("--rig: required with this camera (the rig file, rig.json)")
-    rig = load_rig(args.rig) if args.rig else None
+    rig = resolve_rig(args.rig) if args.rig else None
     if scheme == "replay" and rig is not None:
         check_rig_fits_recording(rig, args.rig, args.camera.partition(":")[2])
     opts = {}

@@ -14,8 +14,6 @@ from lightflow.app.errors import ConfigError, DriverError
 
 HELP = "render a moving scene, reconstruct its depth and show it (no hardware needed)"
 
-RIGS_DIR = Path(__file__).resolve().parents[1] / "rigs"
-BUILTIN_RIGS = ("two-projector", "single-projector")
 
 DESCRIPTION = """\
 Render a built-in moving scene as the camera of a rig would see it (projected
@@ -100,18 +98,6 @@ class AccuracySink:
         )
 
 
-def resolve_rig(name: str):
-    from lightflow.app.rig import load_rig
-
-    if name in BUILTIN_RIGS:
-        return load_rig(RIGS_DIR / f"{name}.json")
-    if not Path(name).exists():
-        raise ConfigError(
-            f"--rig: {name!r} is neither a built-in rig ({', '.join(BUILTIN_RIGS)}) nor a file"
-        )
-    return load_rig(name)
-
-
 def open_viewer_or_file(rig, out: Path, want_viewer: bool):
     """A RerunSink on a spawned viewer when a display allows it, else on OUT/demo.rrd."""
     from lightflow.app.sinks.rerun_sink import RerunSink
@@ -125,6 +111,7 @@ def open_viewer_or_file(rig, out: Path, want_viewer: bool):
 
 
 def run(args: argparse.Namespace) -> int:
+    from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
     from lightflow.app.status import StatusLine
     from lightflow.drivers.scenes import get_scene

@@ -122,9 +122,9 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.evaluation import evaluate_recording, require_truth, write_metrics_json
     from lightflow.app.pipeline import PipelineConfig
     from lightflow.app.recording import read_recording
-    from lightflow.app.rig import load_rig
+    from lightflow.app.rig import resolve_rig
 
-    rig = load_rig(args.rig) if args.rig else None
+    rig = resolve_rig(args.rig) if args.rig else None
     # check every recording before the long replays, so a typo fails at once
     for rec in args.recordings:
         read_recording(rec, rig)

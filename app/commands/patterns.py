@@ -9,7 +9,7 @@ import cv2
 
 from lightflow.app.errors import ConfigError
 from lightflow.app.patterns import line_centres, pattern_image
-from lightflow.app.rig import load_rig
+from lightflow.app.rig import resolve_rig
 
 DESCRIPTION = """\
 Write the image each projector of a rig shows, at the projector's resolution,
@@ -34,7 +34,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    rig = load_rig(args.rig)
+    rig = resolve_rig(args.rig)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)

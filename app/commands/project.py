@@ -65,10 +65,10 @@ def parse_screens(text: str, projector_names: list[str]) -> list[int | str]:
 
 def run(args: argparse.Namespace) -> int:
     from lightflow.app.patterns import pattern_image
-    from lightflow.app.rig import load_rig
+    from lightflow.app.rig import resolve_rig
     from lightflow.drivers.projector import ProjectorWindows
 
-    rig = load_rig(args.rig)
+    rig = resolve_rig(args.rig)
     names = [p.name for p in rig.projectors]
     selectors = parse_screens(args.screens, names)
     out = ProjectorWindows(

@@ -145,12 +145,12 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lightflow.app.rig import load_rig
+    from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
     from lightflow.app.status import StatusLine
     from lightflow.drivers.replay import RecordedCamera
 
-    rig = load_rig(args.rig) if args.rig else None
+    rig = resolve_rig(args.rig) if args.rig else None
     if rig is not None:
         check_rig_fits_recording(rig, args.rig, args.recording)
     camera = RecordedCamera(args.recording, rig=rig)

@@ -9,7 +9,7 @@ import cv2
 
 from lightflow.app.depth_model import DepthRange
 from lightflow.app.errors import ConfigError
-from lightflow.app.rig import load_rig
+from lightflow.app.rig import resolve_rig
 from lightflow.app.rigcheck import BAND_PX, MAX_ERROR_M, check_rig
 
 DESCRIPTION = f"""\
@@ -98,7 +98,7 @@ def write_images(images: dict, out: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    rig = load_rig(args.rig)
+    rig = resolve_rig(args.rig)
     if args.stride < 1:
         raise ConfigError(f"--stride: expected an integer >= 1, got {args.stride}")
     report = check_rig(rig, args.depths, DepthRange(args.near, args.far), args.stride)

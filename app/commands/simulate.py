@@ -9,9 +9,7 @@ import sys
 from pathlib import Path
 
 from lightflow.app.errors import ConfigError
-from lightflow.app.rig import Rig, load_rig
-
-EXAMPLE_RIGS = ("two-projector", "single-projector")
+from lightflow.app.rig import EXAMPLE_RIGS, Rig, resolve_rig
 
 
 def _scene_lines() -> str:
@@ -37,7 +35,7 @@ REC/ground_truth/scene.json; `lightflow eval REC` scores the pipeline on it.
 Scenes (name, nominal exposure, description):
 {_scene_lines()}
 
-Rigs: a rig file, or the example rigs {" and ".join(EXAMPLE_RIGS)}.
+Rigs: a rig file, or an example rig: {", ".join(EXAMPLE_RIGS)}.
 
 With --calibration, renders a calibration session instead (formats.md section
 4): a checkerboard in --poses poses, each projector showing the Gray-code
@@ -118,21 +116,6 @@ def register(subparsers) -> None:
         help="board poses of a calibration session (default: 6)",
     )
     p.set_defaults(func=run)
-
-
-def resolve_rig(spec: str | Path) -> Rig:
-    """Load a rig from a file path, or one of the example rigs by name."""
-    spec = str(spec)
-    if spec in EXAMPLE_RIGS:
-        import lightflow.app
-
-        return load_rig(Path(lightflow.app.__file__).parent / "rigs" / f"{spec}.json")
-    path = Path(spec)
-    if not path.exists():
-        raise ConfigError(
-            f"--rig {spec}: no such file (expected a rig file or one of {', '.join(EXAMPLE_RIGS)})"
-        )
-    return load_rig(path)
 
 
 def _scaled(rig: Rig, scale: float) -> Rig:
