@@ -29,10 +29,10 @@ import numba as nb
 import numpy as np
 
 #: band fields in the per-row output
-F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP = range(8)
-N_FIELDS = 8
+F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT = range(9)
+N_FIELDS = 9
 #: fields interpolated onto the grid by :func:`rasterise`
-GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP)
+GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP, F_SLANT)
 
 
 @dataclass(frozen=True)
@@ -380,6 +380,31 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     return ns
 
 
+@nb.njit(cache=True)
+def _slants(bands, counts, row_y, first, group):
+    """Slant (columns per row) of each band, from its partner in a neighbouring row.
+
+    Lines on tilted or curved surfaces are slanted; along a row their edges are
+    then wider by sqrt(1 + slant^2) than the camera blur across them.
+    """
+    for q in range(group):
+        i = first + q
+        o = first + (q + 1 if q + 1 < group else q - 1)
+        for k in range(counts[i]):
+            bands[i, k, F_SLANT] = 0.0 if group == 1 else np.nan
+            c = bands[i, k, F_CENTRE]
+            if group == 1 or np.isnan(c):
+                continue
+            best = 1e9
+            for m in range(counts[o]):
+                d = bands[o, m, F_CENTRE] - c
+                if abs(d) < abs(best):
+                    best = d
+            iv = bands[i, k, F_INTERVAL]
+            if abs(best) < 0.3 * (iv if iv > 0 else 20.0):
+                bands[i, k, F_SLANT] = best / (row_y[o] - row_y[i])
+
+
 @nb.njit(cache=True, parallel=True)
 def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=1):
     """Detect the bands of every pattern on the image rows ``row_y``.
@@ -417,6 +442,8 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
                 counts[p, i] = _bands_in_row(
                     x[p], thr[p], params[0] * scale, params[2], params[3], params[1], bands[p, i]
                 )
+        for p in range(n_p):
+            _slants(bands[p], counts[p], row_y, g * group, group)
 
 
 @nb.njit(cache=True, parallel=True)

@@ -92,10 +92,14 @@ def _combine(
             for p in range(2):
                 m = grids[p, 0, i, j]
                 B = grids[p, 1, i, j]
+                slant = grids[p, 3, i, j]
+                if not np.isfinite(slant):
+                    slant = 0.0
                 P = _pitch(kinds[p], steps[p], widths[p], u)
                 scale = B / P
                 line = line_px[p] * scale
-                sigma = math.sqrt(blur[p, 0] + blur[p, 1] * scale * scale)
+                # camera blur is isotropic: along a row it widens a slanted edge
+                sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
                 L = trilinear_at(inv, s_lo, s_step, w_step, m_step, sigma, line, m)
                 if not (L > static_factor * line + static_margin):
                     ok = False
@@ -124,6 +128,8 @@ class FlowModel:
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
         self.frames = 0
+        #: grid stride in camera pixels (set by the pipeline)
+        self.stride = 1
         #: per pattern, the blur sigma (camera px) at the median magnification
         self.blur_px = [float("nan"), float("nan")]
         self.kinds = np.array([_KIND[pat.kind] for _, pat in self.pairs], dtype=np.int64)
@@ -159,8 +165,9 @@ class FlowModel:
         Parameters
         ----------
         grids : numpy.ndarray
-            ``(2, 3, h, w)``: per pattern, grid maps of the measured band width at
-            half height ``m``, the line interval ``B`` and the 50->20 % ramp ``r``.
+            ``(2, 4, h, w)``: per pattern, grid maps of the measured band width at
+            half height ``m``, the line interval ``B``, the 50->20 % ramp ``r`` and the
+            slant of the lines (columns per row).
         params : FlowParams
 
         Returns
@@ -186,23 +193,39 @@ class FlowModel:
         return log_ratio, [flows[0], flows[1]], list(self.blur_px)
 
     def _refit_blur(self, grids: np.ndarray) -> None:
-        """Fit the blur model of each pattern on a subsample of this frame's bands."""
+        """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""
         sub = grids[:, :, ::3, ::3]
         with np.errstate(invalid="ignore", divide="ignore"):
             B0, B1 = sub[0, 1], sub[1, 1]
             if self.single:
                 u = np.interp(np.log(B1 / B0), np.linspace(self._u_lo, self._u_hi, len(self._u_of)),
                               self._u_of, left=np.nan, right=np.nan)  # fmt: skip
+            ms, rs, lines, scales, slants = [], [], [], [], []
             for p, (proj, pat) in enumerate(self.pairs):
-                m, B, r = sub[p]
+                m, B, r, slant = sub[p]
+                # only where the line spacing changes slowly (planes, gentle curves): on
+                # strongly curved parts the edges also carry the change of magnification
+                dB = np.abs(np.gradient(B, axis=1)) / (3 * self.stride)
+                m = np.where(dB < 0.1, m, np.nan)
+                slants.append(slant.ravel())
                 P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
-                scale = B / P
-                fitted = fit_blur(m, r, pat.width_px * scale, scale)
+                scale = np.broadcast_to(B / P, m.shape)
+                ms.append(m.ravel())
+                rs.append(r.ravel())
+                lines.append(pat.width_px * scale.ravel())
+                scales.append(scale)
+            # one optics model for both patterns, fitted on the long bands of both: the
+            # same camera, and the projectors' defocus scales with magnification alike
+            fitted = fit_blur(
+                np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
+                np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants),
+            )  # fmt: skip
+            for p in range(2):
                 if fitted is not None:
                     self.blur[p] = fitted
                     self._fitted = True
                 # for display: the blur at the median magnification
-                med = np.nanmedian(scale) if np.isfinite(scale).any() else 1.0
+                med = np.nanmedian(scales[p]) if np.isfinite(scales[p]).any() else 1.0
                 self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
 
 

@@ -95,6 +95,7 @@ class DepthPipeline:
                 f"see `lightflow rig check`"
             )
         self.flow_model = FlowModel(rig)
+        self.flow_model.stride = cfg.stride
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
         cam = rig.camera
         self.grid_shape = self.lut.h0.shape

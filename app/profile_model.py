@@ -21,12 +21,13 @@ from __future__ import annotations
 import hashlib
 import inspect
 import math
+import sys
 
 import numba as nb
 import numpy as np
 
 from . import bands as _bands_module
-from .bands import _bands_in_row, _sliding_mid
+from .bands import N_FIELDS, _bands_in_row, _sliding_mid
 
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -95,7 +96,7 @@ def _simulate_detector(L, w, sigma, phase, out2):
         x[j] = 5.0 + 100.0 * v
     thr = np.empty((2, n))
     _sliding_mid(x, int(2.2 * B) | 1, thr)
-    out = np.empty((8, 8))
+    out = np.empty((8, N_FIELDS))
     ns = _bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, out)
     out2[0] = np.nan
     out2[1] = np.nan
@@ -137,7 +138,7 @@ def _invert_table(m_tab, l_axis, m_axis, out):
         for k in range(nl - 1):
             a = m_tab[i, j, k]
             b = m_tab[i, j, k + 1]
-            if np.isfinite(a) and np.isfinite(b) and (b - a) / (l_axis[k + 1] - l_axis[k]) > 0.25:
+            if np.isfinite(a) and np.isfinite(b) and (b - a) / (l_axis[k + 1] - l_axis[k]) > 0.5:
                 first = k
                 break
         for q in range(m_axis.shape[0]):
@@ -203,7 +204,7 @@ class ProfileTables:
         # the tables model the detector's code: key them by its source
         digest = hashlib.sha256(
             inspect.getsource(_bands_module).encode()
-            + inspect.getsource(_simulate_detector.py_func).encode()
+            + inspect.getsource(sys.modules[__name__]).encode()
         ).hexdigest()[:12]
         path = lut_cache_dir() / f"profile-tables-{digest}.npz"
         try:
@@ -262,7 +263,7 @@ def tables() -> ProfileTables:
     return _TABLES
 
 
-def fit_blur(m, r, line, scale, max_pixels: int = 3000):
+def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 3000):
     """Fit the blur model ``sigma^2 = a + b * scale^2`` to measured bands.
 
     Camera blur and pixel size (``a``) are fixed in camera pixels; projector
@@ -276,6 +277,9 @@ def fit_blur(m, r, line, scale, max_pixels: int = 3000):
     m, r, line, scale : numpy.ndarray
         Measured width at half height, ramp, line width (camera px) and
         magnification per pixel.
+    slant : numpy.ndarray, optional
+        Slant of the lines (columns per row): along a row the camera blur of a
+        slanted edge is wider by ``sqrt(1 + slant^2)``.
 
     Returns
     -------
@@ -283,12 +287,13 @@ def fit_blur(m, r, line, scale, max_pixels: int = 3000):
     """
     # clearly moving bands only: static lines say nothing about the sweep model
     ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & np.isfinite(scale)
-    ok &= m > 1.5 * line + 2.0
+    ok &= m > 2.0 * line + 4.0  # long: their ramps are the line edge blurred, nothing else
     idx = np.flatnonzero(ok)
-    if idx.size < 50:
+    if idx.size < 300:  # too few clearly moving bands to tell the blur
         return None
     idx = idx[:: max(1, idx.size // max_pixels)]
     m, r, line, s2 = m.ravel()[idx], r.ravel()[idx], line.ravel()[idx], scale.ravel()[idx] ** 2
+    k2 = 1.0 if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
     best, best_cost = None, np.inf
     spread = np.ptp(s2) > 0.15 * np.mean(s2)
@@ -296,9 +301,9 @@ def fit_blur(m, r, line, scale, max_pixels: int = 3000):
     b_grid = np.concatenate([[0.0], np.geomspace(0.02, 4.0, 12)]) if spread else [0.0]
     for b in b_grid:
         for a in a_grid:
-            if np.sqrt(a + b * np.max(s2)) > S_AXIS[-1]:
+            sigma = np.sqrt(a * k2 + b * s2)
+            if np.max(sigma) > S_AXIS[-1]:
                 continue
-            sigma = np.sqrt(a + b * s2)
             L = t.true_length(m, line, sigma)
             pred = t.ramp(L, line, sigma)
             res = np.abs(pred - r)
