@@ -390,16 +390,25 @@ def _slants(bands, counts, row_y, first, group):
     for q in range(group):
         i = first + q
         o = first + (q + 1 if q + 1 < group else q - 1)
+        m = 0  # bands are in column order in both rows: one forward sweep finds partners
         for k in range(counts[i]):
             bands[i, k, F_SLANT] = 0.0 if group == 1 else np.nan
             c = bands[i, k, F_CENTRE]
             if group == 1 or np.isnan(c):
                 continue
             best = 1e9
-            for m in range(counts[o]):
-                d = bands[o, m, F_CENTRE] - c
-                if abs(d) < abs(best):
-                    best = d
+            while m < counts[o]:
+                co = bands[o, m, F_CENTRE]
+                if np.isnan(co):
+                    m += 1
+                    continue
+                if abs(co - c) <= abs(best):
+                    best = co - c
+                    if co >= c:
+                        break
+                    m += 1
+                else:
+                    break
             iv = bands[i, k, F_INTERVAL]
             if abs(best) < 0.3 * (iv if iv > 0 else 20.0):
                 bands[i, k, F_SLANT] = best / (row_y[o] - row_y[i])
