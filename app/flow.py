@@ -102,7 +102,10 @@ def _combine(
                 sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
                 L = trilinear_at(inv, s_lo, s_step, w_step, m_step, sigma, line, m)
                 if not (L > static_factor * line + static_margin):
-                    ok = False
+                    ok = False  # no clear sweep: a static (or nearly static) line
+                    break
+                if L + line + 2.0 * sigma > B:
+                    ok = False  # swept line and its blur fill the interval: bands overlap
                     break
                 flows[p, i, j] = L / B * P
                 if p == 0:
