@@ -60,7 +60,7 @@ class BandParams:
     symmetry_tolerance_px: float = 0.3
     min_gap_px: float = 1.0
     vertical_extra: int = 0
-    rows_per_cell: int = 2
+    rows_per_cell: int = 1
 
 
 @nb.njit(cache=True, inline="always")

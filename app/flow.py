@@ -44,7 +44,7 @@ class FlowParams:
     smoothing_px: float = 10.0
     static_factor: float = 0.9
     static_margin_px: float = 1.0
-    fill_fraction: float = 0.45
+    fill_fraction: float = 0.3
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -96,3 +97,107 @@ def measure_response(images: Sequence[np.ndarray], levels: Sequence[int],
     inverse = np.interp(np.arange(256) / 255.0, r_sorted, levels[order])
     inverse = np.clip(np.rint(inverse), 0, 255).astype(np.uint8)
     return Response(gamma, levels, response, rms, inverse)
+
+
+# ----------------------------------------------------------------------------- CAL/gamma/
+
+#: the grey ramp folder beside a session: ``CAL/gamma/<projector>/NNN.png`` + ``ramp.json``
+RAMP_DIR = "gamma"
+RAMP_FILE = "ramp.json"
+RAMP_FORMAT = "lightflow-gamma-ramp/1"
+#: grey levels shown by default (black and white first, then the ramp)
+DEFAULT_LEVELS = (0, 255, 16, 32, 64, 96, 128, 160, 192, 224)
+#: a fitted gamma further than this from 1 gets a plain-words note
+NONLINEAR_TOLERANCE = 0.15
+
+
+def ramp_frame_path(projector: str, index: int) -> str:
+    """Path of a ramp frame relative to the session folder: ``gamma/left/000.png``."""
+    return f"{RAMP_DIR}/{projector}/{index:03d}.png"
+
+
+def write_ramp_index(root: str | Path, levels: Sequence[int], projectors: Sequence[str]) -> Path:
+    """Write ``CAL/gamma/ramp.json`` listing the grey levels and the projectors' frames."""
+    import json
+
+    levels = [int(v) for v in levels]
+    doc = {
+        "format": RAMP_FORMAT,
+        "levels": levels,
+        "projectors": {name: [ramp_frame_path(name, i) for i in range(len(levels))]
+                       for name in projectors},
+    }
+    file = Path(root) / RAMP_DIR / RAMP_FILE
+    file.parent.mkdir(parents=True, exist_ok=True)
+    file.write_text(json.dumps(doc, indent=2) + "\n")
+    return file
+
+
+def measure_ramps(root: str | Path) -> dict[str, Response | str] | None:
+    """Measure every projector's response from ``CAL/gamma/``, if the folder is there.
+
+    Returns
+    -------
+    dict or None
+        ``None`` without ``CAL/gamma/ramp.json``; else projector name -> its
+        :class:`Response`, or a plain-words reason why it could not be measured.
+
+    Raises
+    ------
+    ConfigError
+        A malformed ``ramp.json`` (names the field).
+    """
+    from lightflow.app.errors import ConfigError, FrameError
+    from lightflow.app.rig import read_json
+
+    from .session import load_grey
+
+    root = Path(root)
+    file = root / RAMP_DIR / RAMP_FILE
+    if not file.is_file():
+        return None
+    doc = read_json(file)
+    if not isinstance(doc, dict) or doc.get("format") != RAMP_FORMAT:
+        raise ConfigError(f"{file}: format: expected {RAMP_FORMAT!r}")
+    levels = doc.get("levels")
+    if (not isinstance(levels, list) or not levels
+            or not all(isinstance(v, int) and 0 <= v <= 255 for v in levels)):
+        raise ConfigError(f"{file}: levels: expected a list of grey levels 0..255")
+    projs = doc.get("projectors")
+    if not isinstance(projs, dict):
+        raise ConfigError(f"{file}: projectors: expected an object name -> frame files")
+    out: dict[str, Response | str] = {}
+    for name, files in projs.items():
+        if not isinstance(files, list) or len(files) != len(levels):
+            raise ConfigError(f"{file}: projectors.{name}: expected {len(levels)} frame files "
+                              f"(one per level)")
+        try:
+            images = [load_grey(root / rel, f"grey ramp of projector {name}, level {lv}")
+                      for rel, lv in zip(files, levels, strict=True)]
+            out[name] = measure_response(images, levels)
+        except (CalibrationError, FrameError) as exc:
+            out[name] = str(exc)
+    return out
+
+
+def gamma_lines(results: dict[str, Response | str] | None) -> list[str]:
+    """Plain lines for the report: the fitted gamma of each projector, with advice."""
+    if results is None:
+        return [f"projector gamma: not measured (the session has no {RAMP_DIR}/ folder)"]
+    lines = []
+    for name, r in results.items():
+        if isinstance(r, str):
+            lines.append(f"projector {name}: gamma not measured: {r}")
+            continue
+        mid = float(np.interp(128, r.levels[np.argsort(r.levels)],
+                              r.response[np.argsort(r.levels)]))
+        lines.append(f"projector {name}: gamma {r.gamma:.2f} (fit RMS {r.rms:.3f} over "
+                     f"{len(r.levels)} grey levels; grey 128 gives {100 * mid:.0f} % of white)")
+        if abs(r.gamma - 1) > NONLINEAR_TOLERANCE:
+            lines.append(
+                f"  note: projector {name} is not linear: the camera sees grey 128 at "
+                f"{100 * mid:.0f} % of white instead of 50 %, so the soft edges of projected "
+                f"lines come out sharper than drawn.  If the projector has a linear, 'raw' "
+                f"or gamma 1.0 picture mode, select it and measure again."
+            )
+    return lines

@@ -10,6 +10,8 @@ import numpy as np
 
 from lightflow.app.rig import Rig
 
+from .gamma import Response, gamma_lines
+
 #: accuracy bars of a simulated 1600x1200 session (issue 4)
 BARS = {"focal_pct": 0.5, "principal_px": 3.0, "position_mm": 3.0, "rotation_deg": 0.2,
         "rms_px": 0.3}
@@ -49,6 +51,8 @@ class Report:
     warnings: list[str] = field(default_factory=list)
     placement: list[str] = field(default_factory=list)
     comparison: dict[str, Any] | None = None
+    #: projector name -> measured response (or why not), None when no grey ramp was captured
+    gamma: dict[str, Response | str] | None = None
 
     @property
     def rms(self) -> float:
@@ -68,6 +72,7 @@ class Report:
             lines.append(f"  per pose (px): {views}")
             for pose, why in dev.rejected.items():
                 lines.append(f"  left out {pose}: {why}")
+        lines += gamma_lines(self.gamma)
         for w in self.warnings:
             lines.append(f"warning: {w}")
         lines += self.placement
