@@ -52,7 +52,7 @@ eval: setup
 	$(BIN)/lightflow simulate --scene board --rig single-projector --frames 3 --out $(EVAL)/board-single
 	$(BIN)/lightflow simulate --scene board --rig app/rigs/two-projector-distorted.json --frames 3 --out $(EVAL)/board-distorted
 	for e in 0.005 0.01 0.015 0.02 0.025; do $(BIN)/lightflow simulate --scene board --exposure $$e --frames 2 --out $(EVAL)/exposure-$$e; done
-	$(BIN)/lightflow eval $(EVAL)/board $(EVAL)/board-single $(EVAL)/board-distorted $(foreach s,$(filter-out board,$(SCENES)),$(EVAL)/$(s))
+	$(BIN)/lightflow eval --plot $(EVAL)/scenes.png $(EVAL)/board $(EVAL)/board-single $(EVAL)/board-distorted $(foreach s,$(filter-out board,$(SCENES)),$(EVAL)/$(s))
 	$(BIN)/lightflow eval $(EVAL)/exposure-* --plot $(EVAL)/exposure.png
 
 clean:

@@ -89,7 +89,7 @@ class DepthPipeline:
         usable = float(np.mean(self.lut.usable))
         if usable < 0.05:
             raise ConfigError(
-                f"rig: projectors: the flow ratio does not change with depth on "
+                f"{rig.source}: projectors: the flow ratio does not change with depth on "
                 f"{100 * (1 - usable):.0f} % of the image (parallel projectors, or a single "
                 f"projector with like patterns?): no depth can be measured; "
                 f"see `lightflow rig check`"

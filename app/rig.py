@@ -118,6 +118,8 @@ class Rig:
 
     camera: CameraModel
     projectors: tuple[ProjectorModel, ...]
+    #: where the rig came from (names the file in error messages; not part of the rig)
+    source: str = field(default="rig", compare=False)
 
     @property
     def patterns(self) -> list[tuple[ProjectorModel, Pattern]]:
@@ -152,7 +154,7 @@ class Rig:
         new_cam = CameraModel(
             round(cam.width * factor), round(cam.height * factor), K, cam.dist.copy()
         )
-        return Rig(new_cam, self.projectors)
+        return Rig(new_cam, self.projectors, self.source)
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -319,7 +321,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     channels = [pat.channel for p in projectors for pat in p.patterns]
     if len(set(channels)) != len(channels):
         raise rd.fail("projectors", f"each pattern needs its own colour channel, got {channels}")
-    return Rig(camera, tuple(projectors))
+    return Rig(camera, tuple(projectors), source)
 
 
 def _read_json(path: Path) -> Any:

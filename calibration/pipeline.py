@@ -21,11 +21,13 @@ from lightflow.app.errors import CalibrationError, ConfigError
 from lightflow.app.rig import CameraModel, ProjectorModel, Rig, rig_from_dict
 
 from .corners import corners_to_projector, find_board_corners, window_size
+from .gamma import measure_ramps
 from .graycode import decode_graycode
 from .report import DeviceReport, Report, placement_advice, tilt_warning
 from .session import Session, load_grey, read_session
 from .solve import (
     DEFAULT_FLAGS,
+    Intrinsics,
     ProjectorViews,
     calibrate_robust,
     joint_refine,
@@ -33,13 +35,14 @@ from .solve import (
 )
 
 MIN_POSES = 3
+#: fewer good poses than this get a warning
+GOOD_POSES = 6
 
 
 def _rms(per_view) -> float:
     """Overall RMS from per-view RMS values (equal point counts assumed)."""
     a = np.asarray(per_view, float)
     return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
-GOOD_POSES = 6
 
 
 @dataclass(frozen=True)
@@ -89,6 +92,67 @@ def _camera_corners(session: Session, progress) -> tuple[dict, dict]:
     return found, skipped
 
 
+def calibrate_camera(
+    corners: dict[str, np.ndarray],
+    skipped: dict[str, str],
+    object_points: np.ndarray,
+    size: tuple[int, int],
+    options: Options = Options(),
+) -> tuple[Intrinsics, list[str], dict[str, str]]:
+    """Camera intrinsics from the board corners of each pose, leaving out outlier poses.
+
+    Parameters
+    ----------
+    corners : dict
+        Pose name -> ``(n, 2)`` board corners in the camera.
+    skipped : dict
+        Pose name -> why its corners were not found (copied into the rejections).
+    object_points : numpy.ndarray
+        ``(n, 3)`` board corners in board coordinates.
+    size : tuple of int
+        Camera ``(width, height)``.
+
+    Returns
+    -------
+    Intrinsics
+        Calibration from the poses kept.
+    used : list of str
+        Names of the poses kept, in the order of ``Intrinsics.per_view``.
+    rejected : dict
+        Pose name -> why it was left out (``skipped`` plus the outliers).
+    """
+    names = list(corners)
+    cam, keep = calibrate_robust([object_points] * len(names), [corners[n] for n in names], size,
+                                 options.flags, options.outlier_factor, options.outlier_floor_px)
+    rejected = dict(skipped)
+    for n, k in zip(names, keep, strict=True):
+        if not k:
+            rejected[n] = (f"camera reprojection error over {options.outlier_factor:g}x the "
+                           f"median (board moved or blurred?)")
+    used = [n for n, k in zip(names, keep, strict=True) if k]
+    return cam, used, rejected
+
+
+def pose_warnings(n_good: int, normals: np.ndarray) -> list[str]:
+    """Warnings about the poses: fewer than :data:`GOOD_POSES` good ones, too little tilt.
+
+    Parameters
+    ----------
+    n_good : int
+        Poses every device kept.
+    normals : numpy.ndarray
+        ``(n, 3)`` board normals (camera frame) of the poses the camera kept.
+    """
+    warnings = []
+    if n_good < GOOD_POSES:
+        warnings.append(f"only {n_good} good poses; use at least {GOOD_POSES} for a reliable "
+                        f"calibration")
+    tw = tilt_warning(normals)
+    if tw:
+        warnings.append(tw)
+    return warnings
+
+
 def calibrate_session(
     path: str | Path,
     options: Options = Options(),
@@ -125,16 +189,8 @@ def calibrate_session(
         why = "; ".join(f"pose {k}: {v}" for k, v in skipped.items())
         raise CalibrationError(f"{session.root}: board found in {len(corners)} poses, need at "
                                f"least {MIN_POSES}: {why}")
-    names = list(corners)
     cam_size = session.camera_size
-    cam, keep = calibrate_robust([obj_all] * len(names), [corners[n] for n in names], cam_size,
-                                 options.flags, options.outlier_factor, options.outlier_floor_px)
-    cam_rejected = dict(skipped)
-    for n, k in zip(names, keep, strict=True):
-        if not k:
-            cam_rejected[n] = ("camera reprojection error over 3x the median "
-                               "(board moved or blurred?)")
-    used = [n for n, k in zip(names, keep, strict=True) if k]
+    cam, used, cam_rejected = calibrate_camera(corners, skipped, obj_all, cam_size, options)
     normals = np.array([cv2.Rodrigues(r)[0][:, 2] for r in cam.rvecs])
 
     win = window_size(cam_size[0])
@@ -207,13 +263,8 @@ def calibrate_session(
         rig = rig_from_dict(rig.to_dict(), "calibrated rig")
     except ConfigError as exc:  # pragma: no cover - guarded by session validation
         raise CalibrationError(str(exc)) from None
-    warnings = []
     n_good = min([len(used)] + [len(r.per_view) for r in reports])
-    if n_good < GOOD_POSES:
-        warnings.append(f"only {n_good} good poses; use at least {GOOD_POSES} for a reliable "
-                        f"calibration")
-    tw = tilt_warning(normals)
-    if tw:
-        warnings.append(tw)
-    report = Report(cam_report, reports, len(session.poses), warnings, placement_advice(rig))
+    warnings = pose_warnings(n_good, normals)
+    report = Report(cam_report, reports, len(session.poses), warnings, placement_advice(rig),
+                    gamma=measure_ramps(session.root))
     return rig, report

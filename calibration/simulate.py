@@ -9,7 +9,8 @@ light, shot and read noise are added and the result is quantised to 8 bits.
 Board edges are anti-aliased by averaging several sub-pixel samples.
 
 The ground truth (the rig and the board poses) is written beside the session
-as ``ground_truth.json``.
+as ``ground_truth.json``; :func:`simulate_gamma_ramps` adds each projector's
+grey ramp in ``gamma/`` (the projector response is ``SimParams.gamma``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 from lightflow.app.geometry import project_points, project_to_projector, undistort_pixels
 from lightflow.app.rig import CameraModel, ProjectorModel, Rig
 
+from .gamma import DEFAULT_LEVELS, ramp_frame_path, write_ramp_index
 from .graycode import frame_count, graycode_images
 from .session import Board, Pose, ProjectorSpec, Session, frame_path, write_session
 
@@ -429,3 +431,32 @@ def simulate_grey_ramp(
     rng = np.random.default_rng(seed)
     for level in levels:
         yield view.render(np.full((proj.height, proj.width), level, np.float32), rng)
+
+
+def simulate_gamma_ramps(
+    rig: Rig,
+    out_dir: str | Path,
+    levels: Sequence[int] = DEFAULT_LEVELS,
+    seed: int = 0,
+    params: SimParams = SimParams(),
+) -> Path:
+    """Render each projector's grey ramp into ``CAL/gamma/`` (frames and ``ramp.json``).
+
+    Uses :func:`simulate_grey_ramp` (a white wall, response ``params.gamma``);
+    ``lightflow calibrate`` fits the gamma back from these frames.
+
+    Returns
+    -------
+    pathlib.Path
+        The written ``ramp.json``.
+    """
+    out = Path(out_dir)
+    writer = _Writer()
+    try:
+        for k, proj in enumerate(rig.projectors):
+            frames = simulate_grey_ramp(rig, proj.name, levels, seed + 100 + k, params)
+            for i, img in enumerate(frames):
+                writer.put(out / ramp_frame_path(proj.name, i), img)
+    finally:
+        writer.close()
+    return write_ramp_index(out, levels, [p.name for p in rig.projectors])

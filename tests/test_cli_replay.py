@@ -61,12 +61,14 @@ def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
     assert f"open with `rerun {rrd}`" in out
 
 
-def test_replay_lists_bad_frames_and_still_succeeds(recording, tmp_path, capsys):
+def test_replay_processes_good_frames_lists_bad_ones_exit_2(recording, tmp_path, capsys):
     rec = copy_recording(recording, tmp_path / "rec")
     (rec / "frames" / "000001.png").unlink()
     status = main(["replay", str(rec), "--export-depth", str(tmp_path / "d")])
     out, err = capsys.readouterr()
-    assert status == 0, err
+    assert status == 2, err
+    assert "Traceback" not in err
+    assert f"lightflow: error: 1 of {N_FRAMES} frames could not be replayed" in err
     assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["000000.npy", "000002.npy"]
     assert "bad frames 1" in err
     assert "000001.png: frame file missing (listed as frames[1])" in err
@@ -81,6 +83,7 @@ def test_replay_with_no_good_frame_exits_2(recording, tmp_path, capsys):
     assert status == 2
     assert f"lightflow: error: {rec}: none of the {N_FRAMES} frames could be replayed" in err
     assert "Traceback" not in err
+    assert len([ln for ln in err.splitlines() if "error" in ln]) == 1
 
 
 def test_replay_unknown_key_is_one_line_exit_2(recording, tmp_path, capsys):

@@ -21,6 +21,13 @@ per stage, the wall time per frame and the frame rate.
 With --recorder, also measures the sustained write rate of the recorder
 (1600x1200 RGB PNG at 30 fps for 5 s): frames/s, MiB/s and dropped frames."""
 
+EPILOG = """\
+examples:
+  lightflow bench                       # two-projector rig, board scene, 1600x1200
+  lightflow bench --rig single-projector --frames 50
+  lightflow bench --recorder            # also the recorder: 1600x1200 PNG at 30 fps"""
+
+
 WARMUP = 2
 
 
@@ -31,6 +38,7 @@ def register(subparsers) -> None:
         "bench",
         help="time the depth pipeline per stage (and optionally the recorder)",
         description=DESCRIPTION,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(

@@ -67,6 +67,8 @@ def register(subparsers) -> None:
                    help="accept a screen larger than the projector image (drawn 1:1 top-left)")
     p.add_argument("--exposure", metavar="MS|auto",
                    help="exposure in milliseconds, or auto (default: leave the camera's)")
+    p.add_argument("--gain", type=float, metavar="G",
+                   help="camera gain (Aravis: dB, V4L2: the device's units; default: leave it)")
     p.add_argument("--record", metavar="DIR", help="also record the raw frames into a new folder")
     p.add_argument("--frames", type=int, metavar="N", help="stop after N frames (default: run "
                    "until Ctrl-C or the camera ends)")
@@ -129,6 +131,11 @@ def run(args: argparse.Namespace) -> int:
             rate = f", {set_rate(args.fps):.4g} fps"
         print(f"camera {camera.uri}: {w}x{h}{rate}", flush=True)
         pipeline = make_pipeline(rig, args)
+        if args.gain is not None:
+            if not hasattr(camera, "set_gain"):
+                raise ConfigError(f"--gain: {args.camera} has no gain control")
+            got = camera.set_gain(args.gain)
+            print(f"gain: asked {args.gain:g}, camera uses {got:g}", flush=True)
         if exposure == "auto":
             controller = BlurAwareExposure(max_s=1.0 / (args.fps or 30.0))
             chosen, decisions = settle_exposure(camera, pipeline, controller, log=print)

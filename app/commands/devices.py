@@ -22,6 +22,12 @@ Device nodes the current user cannot open are reported with how to fix
 that: install the udev rules shipped in udev/ (see udev/README.md) and add
 the user to the 'video' (V4L2) or 'plugdev' (USB3 Vision) group."""
 
+EPILOG = """\
+examples:
+  lightflow devices                     # cameras (Aravis discovery, V4L2), screens, permissions
+  lightflow devices --no-discovery      # skip the GigE Vision broadcast"""
+
+
 USB_SYSFS = "/sys/bus/usb/devices"
 #: USB3 Vision: interface class Miscellaneous (0xEF), subclass 0x05, protocol 0x00
 U3V_INTERFACE = ("ef", "05", "00")
@@ -36,6 +42,7 @@ def register(subparsers) -> None:
         "devices",
         help="list cameras (Aravis, V4L2) and screens, and check device permissions",
         description=DESCRIPTION,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(

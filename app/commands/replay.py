@@ -169,12 +169,17 @@ def run(args: argparse.Namespace) -> int:
                     count_gaps=False)  # a gap is a bad frame, listed separately
     with camera:
         stats = runner.run(threading.Event())
-    status.finish(stats, camera.bad_frames)
     if stats.frames_done == 0:
         first = camera.bad_frames[0] if camera.bad_frames else "no frame was delivered"
         raise FrameError(f"{args.recording}: none of the {n} frames could be replayed ({first})")
+    status.finish(stats, camera.bad_frames)
     describe_outputs(sinks)
     if runner.interrupted:
         print("stopped early (Ctrl-C): outputs hold the frames processed so far", file=sys.stderr)
         return 130
+    if camera.bad_frames:
+        # the good frames are done; the bad ones are input errors all the same
+        print(f"lightflow: error: {len(camera.bad_frames)} of {n} frames could not be "
+              f"replayed (listed above)", file=sys.stderr)  # fmt: skip
+        return 2
     return 0

@@ -40,11 +40,15 @@ Rigs: a rig file, or an example rig: {", ".join(EXAMPLE_RIGS)}.
 With --calibration, renders a calibration session instead (formats.md section
 4): a checkerboard in --poses poses, each projector showing the Gray-code
 sequence; `lightflow calibrate CAL/ --out rig.json` then recovers the rig.
+Beside the session, CAL/gamma/<projector>/NNN.png are camera frames of a white
+wall while each projector shows a grey ramp (levels in CAL/gamma/ramp.json),
+rendered with the projector response --gamma; calibrate measures it back.
 
 Examples:
   lightflow simulate --scene board --frames 10 --out rec-board
   lightflow simulate --scene fan --exposure 0.004 --scale 0.5 --out rec-fan
-  lightflow simulate --calibration --poses 6 --out cal"""
+  lightflow simulate --calibration --poses 6 --out cal
+  lightflow simulate --calibration --poses 8 --gamma 1.0 --out cal-linear"""
 
 
 def register(subparsers) -> None:
@@ -114,6 +118,14 @@ def register(subparsers) -> None:
         default=6,
         metavar="N",
         help="board poses of a calibration session (default: 6)",
+    )
+    p.add_argument(
+        "--gamma",
+        type=float,
+        default=2.2,
+        metavar="G",
+        help="projector response of a calibration session: grey v in [0, 1] emits v**G "
+        "(default: 2.2)",
     )
     p.set_defaults(func=run)
 
@@ -225,10 +237,13 @@ def simulate_recording(
 
 
 def _run_calibration(args: argparse.Namespace, rig: Rig) -> int:
-    from lightflow.calibration.simulate import simulate_session
+    from lightflow.calibration.simulate import SimParams, simulate_gamma_ramps, simulate_session
 
     if args.poses < 1:
         raise ConfigError(f"--poses: expected at least 1, got {args.poses}")
+    if not (math.isfinite(args.gamma) and 0.2 <= args.gamma <= 5):
+        raise ConfigError(f"--gamma: expected 0.2 .. 5, got {args.gamma:g}")
+    params = SimParams(gamma=args.gamma)
     if (args.out / "session.json").exists():
         raise ConfigError(f"{args.out}: already holds a calibration session, choose a new folder")
     try:
@@ -237,13 +252,16 @@ def _run_calibration(args: argparse.Namespace, rig: Rig) -> int:
             args.poses,
             args.out,
             seed=args.seed,
+            params=params,
             progress=lambda i, n: _progress("simulate", i, n),
         )
     except ValueError as exc:  # no usable board pose for this rig
         raise ConfigError(f"--rig {args.rig}: {exc}") from None
+    ramp = simulate_gamma_ramps(rig, args.out, seed=args.seed, params=params)
     n = len(session.poses)
     print(
         f"{args.out}: calibration session of {n} pose{'s' if n != 1 else ''}, "
-        f"{len(rig.projectors)} projector(s); ground truth in {args.out}/ground_truth.json"
+        f"{len(rig.projectors)} projector(s); grey ramps (gamma {args.gamma:g}) in "
+        f"{ramp.parent}; ground truth in {args.out}/ground_truth.json"
     )
     return 0

@@ -19,12 +19,19 @@ timestamps t must increase.
 Every problem is printed on its own line.  Exit status: 0 when the recording
 is clean, 2 when anything is wrong."""
 
+EPILOG = """\
+examples:
+  lightflow verify rec/                 # exit 0 when clean, 2 with one line per problem
+  lightflow verify rec/ --rig rig.json  # check the frames against another rig's camera size"""
+
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "verify",
         help="check a recording folder for problems",
         description=DESCRIPTION,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("recording", metavar="REC", help="recording folder (holds recording.json)")

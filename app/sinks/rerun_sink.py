@@ -9,7 +9,7 @@ Entity layout (all per frame on the ``frame`` timeline, plus ``camera_time``)::
     flow/<ch>, flow/log_ratio   Tensor on the analysis grid (colormapped in TensorViews)
     world/camera                Pinhole (static) at the origin of the 3D view
     world/camera/points         Points3D, camera frame, metres, subsampled
-    stats/fps|latency_ms|dropped|coverage   Scalars
+    stats/fps|latency_ms|dropped|coverage|mib_per_s|<camera counters>   Scalars
 
 Network: ``serve`` and ``spawn`` run the Rerun binary as a child process bound to
 127.0.0.1 only; the SDK's own ``serve_grpc`` has no bind option and listens on
@@ -330,6 +330,12 @@ class RerunSink:
         rec.log("stats/latency_ms", rr.Scalars(stats.latency_ms))
         rec.log("stats/dropped", rr.Scalars(float(stats.dropped)))
         rec.log("stats/coverage", rr.Scalars(result.coverage))
+        rec.log("stats/mib_per_s", rr.Scalars(stats.mib_per_s))
+        rec.log("stats/camera_lost", rr.Scalars(float(stats.camera_lost)))
+        # transport counters of live cameras: underruns, failures, missing packets, ...
+        for key, value in stats.extra.items():
+            if isinstance(value, (int, float)):
+                rec.log(f"stats/{key}", rr.Scalars(float(value)))
         self.frames_logged += 1
 
     def close(self) -> None:
