@@ -191,7 +191,7 @@ def gamma_lines(results: dict[str, Response | str] | None) -> list[str]:
             continue
         mid = float(np.interp(128, r.levels[np.argsort(r.levels)],
                               r.response[np.argsort(r.levels)]))
-        lines.append(f"projector {name}: gamma {r.gamma:.2f} (fit RMS {r.rms:.3f} over "
+        lines.append(f"projector {name}: gamma {r.gamma:.2f} (fit RMS {r.rms:.4f} over "
                      f"{len(r.levels)} grey levels; grey 128 gives {100 * mid:.0f} % of white)")
         if abs(r.gamma - 1) > NONLINEAR_TOLERANCE:
             lines.append(

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
 
 from lightflow.app.cli import main
-from lightflow.app.rig import ProjectorModel, Rig, load_rig
+from lightflow.app.rig import ProjectorModel, Rig, load_rig, save_rig
 from lightflow.calibration.gamma import measure_response
 from lightflow.calibration.pipeline import calibrate_session
 from lightflow.calibration.report import compare_rigs, placement_advice
@@ -80,6 +81,7 @@ def test_cli_prints_report_and_writes_rig(session_dir, small_rig, tmp_path, caps
     text = capsys.readouterr().out
     assert "camera: RMS reprojection error" in text
     assert "against ground truth:" in text and "worst: focal" in text
+    assert "projector gamma: not measured (the session has no gamma/ folder)" in text
     rig = load_rig(out)
     assert compare_rigs(rig, small_rig)["worst"]["position_mm"] < 4.0
 
@@ -124,3 +126,30 @@ def test_gamma_from_simulated_grey_ramp(small_rig):
     assert r.rms < 0.005
     assert r.inverse[0] == 0 and r.inverse[255] == 255
     assert abs(int(r.inverse[128]) - 255 * (128 / 255) ** (1 / 2.2)) <= 2
+
+
+def test_cli_simulated_gamma_is_measured_by_calibrate(tmp_path, capsys):
+    """simulate --calibration renders grey ramps; calibrate fits and reports the gamma."""
+    rig_file = tmp_path / "small-rig.json"  # camera 400x300, projectors 320x200
+    save_rig(scaled_rig(load_rig(f"{RIGS}/two-projector.json"), 0.25, 0.25), rig_file)
+    cal = tmp_path / "cal"
+    assert main(["simulate", "--calibration", "--rig", str(rig_file), "--poses", "4",
+                 "--gamma", "1.8", "--out", str(cal)]) == 0
+    assert "grey ramps (gamma 1.8)" in capsys.readouterr().out
+    ramp = json.loads((cal / "gamma" / "ramp.json").read_text())
+    assert ramp["levels"][:2] == [0, 255] and len(ramp["levels"]) == 10
+    assert ramp["projectors"]["right"][2] == "gamma/right/002.png"
+    for name in ("left", "right"):
+        assert len(list((cal / "gamma" / name).glob("*.png"))) == 10
+    # session.json stays exactly per formats.md: the ramp is an extra beside it
+    assert "gamma" not in json.loads((cal / "session.json").read_text())
+    assert read_session(cal).camera_size == (400, 300)
+
+    assert main(["calibrate", str(cal), "--out", str(tmp_path / "rig.json")]) == 0
+    text = capsys.readouterr().out
+    found = dict(re.findall(r"^projector (\w+): gamma ([0-9.]+) ", text, re.M))
+    assert set(found) == {"left", "right"}
+    for value in found.values():
+        assert float(value) == pytest.approx(1.8, abs=0.05)
+    assert "note: projector left is not linear" in text
+    assert "warning: only 4 good poses" in text

@@ -5,8 +5,12 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
+from rerun.chunk import RrdReader
 
 from lightflow.app.rig import load_rig
+from lightflow.app.sinks.calibration_sink import CalibrationSink
+from lightflow.calibration.gamma import measure_ramps
 from lightflow.calibration.live import calibrate_live
 from lightflow.calibration.session import ProjectorSpec, read_session
 from lightflow.calibration.simulate import (
@@ -31,6 +35,8 @@ class _Scene:
         self.lock = threading.Lock()
 
     def next_pose(self, prompt):
+        if "grey ramp" in prompt:
+            return  # the user keeps the (light) board in place
         with self.lock:
             self.pose += 1
             R, t = self.poses[self.pose]
@@ -90,6 +96,17 @@ class _Camera(Camera):
             i += 1
 
 
+def _chunks_by_entity(path):
+    out = {}
+    for chunk in RrdReader(path).stream():
+        out.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
+    return out
+
+
+def _column(batches, name):
+    return [v for rb in batches if name in rb.schema.names for v in rb.column(name).to_pylist()]
+
+
 def test_live_capture_writes_a_valid_session(tmp_path):
     rig = scaled_rig(load_rig("app/rigs/two-projector.json"), 0.25, 0.1)  # 400x300, 128x80
     poses = generate_poses(rig, DEFAULT_BOARD, 3, seed=5)
@@ -97,11 +114,45 @@ def test_live_capture_writes_a_valid_session(tmp_path):
     scene = _Scene(rig, poses)
     said = []
     specs = [ProjectorSpec(p.name, p.width, p.height, p.patterns) for p in rig.projectors]
+    rrd = tmp_path / "progress.rrd"
+    sink = CalibrationSink(DEFAULT_BOARD, [p.name for p in specs], "rrd", path=rrd)
     session = calibrate_live(_Camera(scene), _Outputs(scene), DEFAULT_BOARD, specs, tmp_path,
-                             n_poses=3, ask=scene.next_pose, say=said.append)
+                             n_poses=3, ask=scene.next_pose, say=said.append,
+                             ramp_levels=(0, 255, 64, 128, 192), on_pose=sink.log)
+    sink.close()
     assert [p.name for p in session.poses] == ["pose00", "pose01", "pose02"]
     assert any("too similar to pose00" in s for s in said)
     s = read_session(tmp_path)
     assert len(s.poses) == 3 and len(s.poses[2].frames["right"]) == 2 + 2 * (7 + 7)
     frames = list(s.iter_frames(s.poses[0], s.projectors[0]))
     assert frames[0].mean() > frames[1].mean() + 5  # white brighter than black
+
+    # the grey ramp after the poses: CAL/gamma/ with the simulated projectors' gamma 2.2
+    assert (tmp_path / "gamma" / "ramp.json").is_file()
+    assert sorted(p.name for p in (tmp_path / "gamma" / "left").iterdir()) == [
+        f"{i:03d}.png" for i in range(5)]
+    gammas = measure_ramps(tmp_path)
+    assert set(gammas) == {"left", "right"}
+    for r in gammas.values():
+        assert r.gamma == pytest.approx(2.2, abs=0.1)
+
+    # Rerun progress: 4 attempts (one rejected), corners, decoded maps, poses in 3D
+    assert sink.describe() == f"Rerun: 4 attempts, 3 poses captured in {rrd}; open with " \
+        f"`rerun {rrd}`"
+    ent = _chunks_by_entity(rrd)
+    for name in ["/camera/image", "/camera/image/corners", "/projectors/left/column",
+                 "/projectors/left/row", "/projectors/right/column", "/projectors/right/row",
+                 "/world/camera", "/world/boards/pose00", "/world/boards/pose02/board",
+                 "/world/boards/pose01/normal", "/coverage/poses", "/status"]:
+        assert name in ent, name
+    assert sorted(_column(ent["/camera/image"], "attempt")) == [0, 1, 2, 3]
+    corners = _column(ent["/camera/image/corners"], "Points2D:positions")
+    assert [len(c) for c in corners] == [54] * 4
+    assert sorted(_column(ent["/projectors/left/column"], "attempt")) == [0, 2, 3]
+    fmt = _column(ent["/projectors/left/column"], "DepthImage:format")[0][0]
+    buf = bytes(_column(ent["/projectors/left/column"], "DepthImage:buffer")[0][0])
+    cols = np.frombuffer(buf, np.float32).reshape(fmt["height"], fmt["width"])
+    assert cols.shape == (300, 400) and cols.max() <= 128 and (cols > 0).mean() > 0.2
+    assert [v[0] for v in _column(ent["/coverage/poses"], "Scalars:scalars")] == [1.0, 2.0, 3.0]
+    texts = [t[0] for t in _column(ent["/status"], "TextLog:text")]
+    assert "pose01: too similar to pose00" in texts[1] and "3/3 poses" in texts[3]
