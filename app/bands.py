@@ -381,37 +381,47 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
 
 
 @nb.njit(cache=True)
-def _slants(bands, counts, row_y, first, group):
-    """Slant (columns per row) of each band, from its partner in a neighbouring row.
+def _slant_row(bands, counts, row_y, i, o):
+    """Slant (columns per row) of each band of row ``i`` from its partner in row ``o``.
 
     Lines on tilted or curved surfaces are slanted; along a row their edges are
     then wider by sqrt(1 + slant^2) than the camera blur across them.
     """
-    for q in range(group):
-        i = first + q
-        o = first + (q + 1 if q + 1 < group else q - 1)
-        m = 0  # bands are in column order in both rows: one forward sweep finds partners
-        for k in range(counts[i]):
-            bands[i, k, F_SLANT] = 0.0 if group == 1 else np.nan
-            c = bands[i, k, F_CENTRE]
-            if group == 1 or np.isnan(c):
+    m = 0  # bands are in column order in both rows: one forward sweep finds partners
+    dy = row_y[o] - row_y[i]
+    for k in range(counts[i]):
+        bands[i, k, F_SLANT] = np.nan
+        c = bands[i, k, F_CENTRE]
+        if np.isnan(c):
+            continue
+        best = 1e9
+        while m < counts[o]:
+            co = bands[o, m, F_CENTRE]
+            if np.isnan(co):
+                m += 1
                 continue
-            best = 1e9
-            while m < counts[o]:
-                co = bands[o, m, F_CENTRE]
-                if np.isnan(co):
-                    m += 1
-                    continue
-                if abs(co - c) <= abs(best):
-                    best = co - c
-                    if co >= c:
-                        break
-                    m += 1
-                else:
+            if abs(co - c) <= abs(best):
+                best = co - c
+                if co >= c:
                     break
-            iv = bands[i, k, F_INTERVAL]
-            if abs(best) < 0.3 * (iv if iv > 0 else 20.0):
-                bands[i, k, F_SLANT] = best / (row_y[o] - row_y[i])
+                m += 1
+            else:
+                break
+        iv = bands[i, k, F_INTERVAL]
+        if abs(best) < 0.3 * (iv if iv > 0 else 20.0):
+            bands[i, k, F_SLANT] = best / dy
+
+
+@nb.njit(cache=True, parallel=True)
+def band_slants(bands, counts, row_y):
+    """Slants of every band, each row paired with the measured row above (below for the first)."""
+    rows = counts.shape[0]
+    if rows < 2:
+        for k in range(counts[0] if rows else 0):
+            bands[0, k, F_SLANT] = 0.0
+        return
+    for i in nb.prange(rows):
+        _slant_row(bands, counts, row_y, i, i - 1 if i > 0 else 1)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -451,8 +461,6 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
                 counts[p, i] = _bands_in_row(
                     x[p], thr[p], params[0] * scale, params[2], params[3], params[1], bands[p, i]
                 )
-        for p in range(n_p):
-            _slants(bands[p], counts[p], row_y, g * group, group)
 
 
 @nb.njit(cache=True, parallel=True)

@@ -203,6 +203,8 @@ class DepthPipeline:
         bands, counts = self._detect(
             image, weights, self._row_y, self._windows, self._rows_per_cell, self._buffers
         )
+        for p in range(2):
+            bd.band_slants(bands[p], counts[p], self._row_y)
         k = self._rows_per_cell
         grids = np.empty((2, len(self._fields), gh, gw))
         for p in range(2):

@@ -98,3 +98,16 @@ def test_gamma_lines():
     assert lines[1].startswith("  note: projector left is not linear") and "'raw'" in lines[1]
     assert lines[2].startswith("projector right: gamma 1.05 ")
     assert lines[3] == "projector extra: gamma not measured: grey ramp: only 3 pixels brighten"
+
+
+def test_calibrate_help_and_rerun_options(tmp_path, capsys):
+    from lightflow.app.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = capsys.readouterr().out
+    assert "``" not in text and "Examples:" in text
+    assert "lightflow calibrate cal --out rig.json" in text and "--spawn" in text
+    assert main(["calibrate", str(tmp_path), "--out", str(tmp_path / "rig.json"),
+                 "--rrd", str(tmp_path / "p.rrd")]) == 2
+    assert "--rrd and --spawn show a live capture" in capsys.readouterr().err
