@@ -173,7 +173,8 @@ def calibrate_session(
     Rig
         Camera, projectors with ``R``, ``t`` (camera to projector) and patterns.
     Report
-        Reprojection errors, left-out poses, warnings and placement advice.
+        Reprojection errors, left-out poses, warnings, placement advice and the
+        projectors' gamma measured from ``CAL/gamma/`` (``None`` without that folder).
 
     Raises
     ------
