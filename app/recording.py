@@ -366,6 +366,8 @@ class RecordingWriter:
                 _fsync_dir(self.root / FRAMES_DIR)
                 self._write_json()
                 _fsync_dir(self.root)
+                # "written" means listed in a durable recording.json: a crash keeps them
+                self.written = len(self._entries)
             except BaseException as exc:  # noqa: BLE001 - stored and re-raised to the caller
                 self._error = exc
                 stop = stop or any(item is _STOP for item in batch)
@@ -387,7 +389,6 @@ class RecordingWriter:
         if self._extra is not None:
             self._extra(self.root, frame)
         self._entries.append({"file": rel, "t": float(frame.timestamp)})
-        self.written += 1
         self.bytes_written += len(buf)
 
     def _write_json(self) -> None:
