@@ -258,7 +258,15 @@ def smooth_log_ratio(
     """Robust masked smoothing: drop outliers against a first smoothing, then smooth again."""
     if sigma <= 0:
         return log_ratio
-    first = masked_smooth(log_ratio, sigma)
+    if not outlier_sigmas > 0:
+        return masked_smooth(log_ratio, sigma, fill_fraction)
+    # a rough local mean is enough to spot outliers: a box filter costs less
+    mask = np.isfinite(log_ratio)
+    k = 2 * int(round(sigma)) + 1
+    num = cv2.blur(np.where(mask, log_ratio, 0).astype(np.float32), (k, k))
+    den = cv2.blur(mask.astype(np.float32), (k, k))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        first = num / den
     resid = np.abs(log_ratio - first)
     sample = resid[::2, ::2]  # the spread of the residuals, from a quarter of them
     finite = sample[np.isfinite(sample)]
