@@ -59,7 +59,7 @@ class DepthRange:
 _KIND_CODE = {"uniform": 0, "exp2": 1, "exp2-reversed": 2}
 
 
-def _pattern_params(rig: Rig) -> np.ndarray:
+def pattern_params(rig: Rig) -> np.ndarray:
     """Per pattern: [proj index, kind code, pitch or exp2 step, projector width]."""
     rows = []
     for pi, proj in enumerate(rig.projectors):
@@ -130,7 +130,8 @@ def _proj_u_du(pp, x, y, z):
 
 
 @nb.njit(cache=True, inline="always")
-def _local_pitch(code, step, width, u):
+def pitch_at(code, step, width, u):
+    """Local line pitch (projector px) at column ``u`` for a pattern coded by pattern_params."""
     if code == 0:
         return step
     if code == 1:
@@ -145,8 +146,8 @@ def _h_of_z(projs, pats, single, x, y, z):
     u2, du2, pz2 = _proj_u_du(projs[int(pats[1, 0])], x, y, z)
     if pz1 <= 0.0 or pz2 <= 0.0:
         return np.nan
-    p1 = _local_pitch(int(pats[0, 1]), pats[0, 2], pats[0, 3], u1)
-    p2 = _local_pitch(int(pats[1, 1]), pats[1, 2], pats[1, 3], u2)
+    p1 = pitch_at(int(pats[0, 1]), pats[0, 2], pats[0, 3], u1)
+    p2 = pitch_at(int(pats[1, 1]), pats[1, 2], pats[1, 3], u2)
     if p1 <= 0.0 or p2 <= 0.0:
         return np.nan
     if single:
@@ -270,7 +271,7 @@ def h_function(rig: Rig, rays_xy: np.ndarray, z: np.ndarray) -> np.ndarray:
 
     Returns NaN where a projector cannot see the point.
     """
-    projs, pats = _projector_params(rig), _pattern_params(rig)
+    projs, pats = _projector_params(rig), pattern_params(rig)
     return _h_many(projs, pats, rig.single_projector, rays_xy, np.broadcast_to(z, len(rays_xy)))
 
 
@@ -310,7 +311,7 @@ def build_lut(
     h0 = np.empty(n)
     inv_dh = np.empty(n)
     table = np.empty((n, LUT_SAMPLES))
-    projs, pats = _projector_params(rig), _pattern_params(rig)
+    projs, pats = _projector_params(rig), pattern_params(rig)
     chunk = max(gw, (n // 20 // gw) * gw)
     for s in range(0, n, chunk):
         e = min(n, s + chunk)

@@ -17,8 +17,9 @@ import cv2
 import numba as nb
 import numpy as np
 
+from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
-from .patterns import _exp2_step, local_pitch
+from .patterns import local_pitch
 from .profile_model import M_STEP, S_AXIS, W_STEP, fit_blur, tables, trilinear_at
 from .rig import Rig
 
@@ -47,18 +48,6 @@ class FlowParams:
     fill_fraction: float = 0.3
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
-
-
-_KIND = {"uniform": 0, "exp2": 1, "exp2-reversed": 2}
-
-
-@nb.njit(cache=True, inline="always")
-def _pitch(kind, step, width, u):
-    if kind == 0:
-        return step
-    if kind == 1:
-        return (u + width) * step
-    return (2.0 * width - u) * step
 
 
 @nb.njit(cache=True, parallel=True)
@@ -95,7 +84,7 @@ def _combine(
                 slant = grids[p, 3, i, j]
                 if not np.isfinite(slant):
                     slant = 0.0
-                P = _pitch(kinds[p], steps[p], widths[p], u)
+                P = pitch_at(kinds[p], steps[p], widths[p], u)
                 scale = B / P
                 line = line_px[p] * scale
                 # camera blur is isotropic: along a row it widens a slanted edge
@@ -135,11 +124,11 @@ class FlowModel:
         self.stride = 1
         #: per pattern, the blur sigma (camera px) at the median magnification
         self.blur_px = [float("nan"), float("nan")]
-        self.kinds = np.array([_KIND[pat.kind] for _, pat in self.pairs], dtype=np.int64)
-        self.steps = np.array(
-            [pat.pitch_px if pat.kind == "uniform" else _exp2_step(pat) for _, pat in self.pairs]
-        )
-        self.widths = np.array([float(proj.width) for proj, _ in self.pairs])
+        # per pattern: kind code, pitch (uniform) or exp2 step, projector width
+        params = pattern_params(rig)
+        self.kinds = params[:, 1].astype(np.int64)
+        self.steps = params[:, 2].copy()
+        self.widths = params[:, 3].copy()
         self.line_px = np.array([pat.width_px for _, pat in self.pairs])
         if not self.single and np.any(self.kinds != 0):
             raise ConfigError(
