@@ -102,6 +102,13 @@ def calibrate_offline(session: Path, out: Path, progress=None) -> int:
         print(line)
     save_rig(rig, out)
     print(f"wrote {out}")
+    # the placement as pictures: dh/dz, expected error, usable pixels, overlap
+    from lightflow.app.commands.rig import write_images
+    from lightflow.app.rigcheck import check_rig
+
+    pictures = out.with_name(out.stem + "-placement")
+    paths = write_images(check_rig(rig).images, pictures)
+    print(f"wrote {len(paths)} placement images to {pictures}/ (see `lightflow rig check`)")
     return 0
 
 
