@@ -42,7 +42,7 @@ class FlowParams:
         from the smoothed field are dropped before the final smoothing.
     """
 
-    smoothing_px: float = 10.0
+    smoothing_px: float = 24.0
     static_factor: float = 0.9
     static_margin_px: float = 1.0
     fill_fraction: float = 0.3
