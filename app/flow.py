@@ -221,6 +221,15 @@ class FlowModel:
                 self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
 
 
+def _gauss(img: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur; wide ones as two box passes of equal variance (cost independent of sigma)."""
+    if sigma <= 3.0:
+        return cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    k = int(round(np.sqrt(6.0 * sigma * sigma + 1.0))) | 1  # var of 2 boxes: (k^2 - 1) / 6
+    once = cv2.blur(img, (k, k), borderType=cv2.BORDER_REFLECT)
+    return cv2.blur(once, (k, k), borderType=cv2.BORDER_REFLECT)
+
+
 def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) -> np.ndarray:
     """Gaussian smoothing that ignores NaN pixels.
 
@@ -233,8 +242,8 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
         return values
     m = mask.astype(np.float32)
     v = np.where(mask, values, 0).astype(np.float32)
-    num = cv2.GaussianBlur(v, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
-    den = cv2.GaussianBlur(m, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    num = _gauss(v, sigma)
+    den = _gauss(m, sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
     out[~(mask | (den >= fill_fraction))] = np.nan
