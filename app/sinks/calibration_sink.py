@@ -22,9 +22,6 @@ does (an .rrd file, or a viewer spawned on 127.0.0.1), with its process helpers.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +29,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from lightflow.app.errors import ConfigError, DriverError
-from lightflow.app.sinks.rerun_sink import RerunProcess, disable_viewer_analytics
+from lightflow.app.sinks.rerun_sink import RerunProcess, open_stream
 from lightflow.calibration.live import PoseView, guessed_K
 from lightflow.calibration.session import Board
 
@@ -95,21 +92,7 @@ class CalibrationSink:
         self._static_done = False
         self._closed = False
         self._process: RerunProcess | None = None
-        self.rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())
-        if mode == "rrd":
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(self.path)
-        else:
-            if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-                raise DriverError("rerun: no display to open a viewer on (DISPLAY is not set); "
-                                  "write a file with --rrd FILE")
-            disable_viewer_analytics()
-            # left running after close(): it is the user's window onto the calibration
-            log = Path(tempfile.gettempdir()) / f"lightflow-rerun-viewer-{port}.log"
-            self._process = RerunProcess(["--bind", "127.0.0.1", "--port", str(port)],
-                                         log_path=log)
-            self._process.start()
-            self.rec.connect_grpc(f"rerun+http://127.0.0.1:{port}/proxy")
+        self.rec, self._process = open_stream(app_id, mode, self.path, port)
         self.rec.send_blueprint(make_blueprint(list(projectors)))
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
 

@@ -189,6 +189,49 @@ def make_blueprint(rig: Rig) -> rrb.Blueprint:
     )
 
 
+def open_stream(
+    app_id: str, mode: str, path: Path | None = None, port: int = 9876
+) -> tuple[rr.RecordingStream, RerunProcess | None]:
+    """A private recording stream on a file, a spawned viewer or a loopback server.
+
+    Returns the stream and the viewer/server child process (None for a file).
+    The viewer and the server listen on 127.0.0.1 only; viewer analytics are off.
+    """
+    # a private stream: other code (or tests) using the global recording is unaffected
+    rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    if mode == "rrd":
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rec.save(path)
+        return rec, None
+    if mode == "serve":
+        disable_viewer_analytics()
+        process = RerunProcess(
+            ["--serve-grpc", "--bind", "127.0.0.1", "--port", str(port)],
+            ready_text="Listening for gRPC connections",
+        )
+        process.start()
+        try:
+            rec.connect_grpc(url)
+        except BaseException:
+            process.stop()
+            raise
+        return rec, process
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise DriverError(
+            "rerun: no display to open a viewer on (DISPLAY is not set); "
+            "write a file with --rrd FILE, or use --serve"
+        )
+    disable_viewer_analytics()
+    # the viewer hosts its own gRPC server: keep it on loopback as well.  It is left
+    # running after the sink closes: it is the user's window onto the results.
+    log = Path(tempfile.gettempdir()) / f"lightflow-rerun-viewer-{port}.log"
+    process = RerunProcess(["--bind", "127.0.0.1", "--port", str(port)], log_path=log)
+    process.start()
+    rec.connect_grpc(url)
+    return rec, process
+
+
 class RerunSink:
     """Log every result to Rerun: an .rrd file, a spawned viewer, or a loopback server.
 
@@ -244,36 +287,7 @@ class RerunSink:
         self._closed = False
         self.frames_logged = 0
 
-        # a private stream: other code (or tests) using the global recording is unaffected
-        self.rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())
-        if mode == "rrd":
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(self.path)
-        elif mode == "serve":
-            disable_viewer_analytics()
-            self._process = RerunProcess(
-                ["--serve-grpc", "--bind", "127.0.0.1", "--port", str(port)],
-                ready_text="Listening for gRPC connections",
-            )
-            self._process.start()
-            try:
-                self.rec.connect_grpc(self.url)
-            except BaseException:
-                self._process.stop()
-                raise
-        else:
-            if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-                raise DriverError(
-                    "rerun: no display to open a viewer on (DISPLAY is not set); "
-                    "write a file with --rrd FILE, or use --serve"
-                )
-            disable_viewer_analytics()
-            # the viewer hosts its own gRPC server: keep it on loopback as well.  It is
-            # left running after close(): it is the user's window onto the results.
-            log = Path(tempfile.gettempdir()) / f"lightflow-rerun-viewer-{port}.log"
-            self._process = RerunProcess(["--bind", "127.0.0.1", "--port", str(port)], log_path=log)
-            self._process.start()
-            self.rec.connect_grpc(self.url)
+        self.rec, self._process = open_stream(app_id, mode, self.path, port)
         try:
             self.rec.send_blueprint(make_blueprint(rig))
             self._log_static()
