@@ -175,6 +175,21 @@ class DepthPipeline:
                 wins[p] = int(2 * np.median(iv)) | 1
         return wins
 
+    def _upsample(self, grid: np.ndarray) -> np.ndarray:
+        """Grid (cell centres) to full resolution, bilinear; NaN spreads to its neighbours."""
+        s = self.config.stride
+        gh, gw = grid.shape
+        if (gw * s, gh * s) == self._full_size:
+            # grid samples sit at cell centres, exactly where resize expects them
+            return cv2.resize(grid, self._full_size, interpolation=cv2.INTER_LINEAR)
+        # an image size that is no multiple of the stride: map pixel x to cell (x - off) / s
+        off = 0.5 * (s - 1)
+        m = np.array([[1.0 / s, 0.0, -off / s], [0.0, 1.0 / s, -off / s]])
+        return cv2.warpAffine(
+            grid, m, self._full_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REPLICATE,
+        )  # fmt: skip
+
     @staticmethod
     def _scale(image: np.ndarray) -> float:
         return 65535.0 if image.dtype == np.uint16 else 255.0
@@ -224,8 +239,7 @@ class DepthPipeline:
         if cfg.stride == 1:
             depth = depth_grid
         else:
-            # grid samples sit at cell centres, exactly where resize expects them
-            depth = cv2.resize(depth_grid, self._full_size, interpolation=cv2.INTER_LINEAR)
+            depth = self._upsample(depth_grid)
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         timings["total"] = (t5 - t0) * 1e3
