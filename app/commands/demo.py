@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import threading
 from pathlib import Path
@@ -150,5 +151,7 @@ def run(args: argparse.Namespace) -> int:
     print(accuracy.describe())
     print(rerun_sink.describe())
     if not spawned:
-        print(f"open it with:  rerun {out / 'demo.rrd'}")
+        # the viewer comes with rerun-sdk, next to this interpreter (.venv/bin)
+        viewer = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+        print(f"open it with:  {viewer} {out / 'demo.rrd'}")
     return 130 if runner.interrupted else 0
