@@ -13,7 +13,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from aravis_sim import SIM_ADDRESS, Simulator, private_netns_problem
+from aravis_sim import SIM_ADDRESS
 
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers.aravis import (
@@ -26,17 +26,6 @@ from lightflow.drivers.aravis import (
 pytestmark = pytest.mark.aravis
 
 
-@pytest.fixture(scope="module")
-def netns():
-    problem = private_netns_problem()
-    if problem:
-        pytest.fail(problem)
-
-
-@pytest.fixture
-def sim(netns):
-    with Simulator() as simulator:
-        yield simulator
 
 
 def test_private_network_namespace(netns):

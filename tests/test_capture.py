@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from aravis_sim import SIM_ADDRESS, Simulator, private_netns_problem
+from aravis_sim import SIM_ADDRESS
 from rerun.chunk import RrdReader
 
 from lightflow.app.cli import main
@@ -103,17 +103,6 @@ def test_capture_bad_uri(capsys):
 # ----------------------------------------------------------------------------- Aravis simulator
 
 
-@pytest.fixture(scope="module")
-def netns():
-    problem = private_netns_problem()
-    if problem:
-        pytest.fail(problem)
-
-
-@pytest.fixture
-def sim(netns):
-    with Simulator() as simulator:
-        yield simulator
 
 
 @pytest.fixture(scope="module")

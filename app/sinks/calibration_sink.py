@@ -28,8 +28,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from lightflow.app.errors import ConfigError, DriverError
-from lightflow.app.sinks.rerun_sink import RerunProcess, open_stream
+from lightflow.app.errors import ConfigError
+from lightflow.app.sinks.rerun_sink import RerunProcess, flush_stream, open_stream
 from lightflow.calibration.live import PoseView, guessed_K
 from lightflow.calibration.session import Board
 
@@ -152,13 +152,7 @@ class CalibrationSink:
         if self._closed:
             return
         self._closed = True
-        try:
-            self.rec.flush()
-            self.rec.disconnect()
-        except RuntimeError as exc:
-            reason = self._process.exit_reason() if self._process else None
-            raise DriverError(f"Rerun viewer exited: {reason}" if reason
-                              else f"Rerun: {exc}") from None
+        flush_stream(self.rec, self._process)
 
     def describe(self) -> str:
         """How the user gets to see what was logged."""

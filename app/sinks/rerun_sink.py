@@ -232,6 +232,17 @@ def open_stream(
     return rec, process
 
 
+def flush_stream(rec: rr.RecordingStream, process: RerunProcess | None) -> None:
+    """Flush and disconnect; a viewer that died becomes one DriverError line."""
+    try:
+        rec.flush()
+        rec.disconnect()
+    except RuntimeError as exc:
+        # the SDK reports a viewer that died or was closed as a severed connection
+        reason = process.exit_reason() if process else None
+        raise DriverError(f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}") from None
+
+
 class RerunSink:
     """Log every result to Rerun: an .rrd file, a spawned viewer, or a loopback server.
 
@@ -358,13 +369,7 @@ class RerunSink:
             return
         self._closed = True
         try:
-            self.rec.flush()
-            self.rec.disconnect()
-        except RuntimeError as exc:
-            # the SDK reports a viewer that died or was closed as a severed connection
-            reason = self._process.exit_reason() if self._process else None
-            where = f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}"
-            raise DriverError(where) from None
+            flush_stream(self.rec, self._process)
         finally:
             if self.mode == "serve" and self._process is not None:
                 self._process.stop()
