@@ -31,7 +31,7 @@ import numpy as np
 #: band fields in the per-row output
 F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT = range(9)
 N_FIELDS = 9
-#: fields interpolated onto the grid by :func:`rasterise`
+#: fields interpolated onto the grid by :func:`rasterise_cells`
 GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP, F_SLANT)
 
 
@@ -465,7 +465,7 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
 
 @nb.njit(cache=True, parallel=True)
 def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
-    """:func:`rasterise` for ``k`` measured rows per grid cell, averaged (NaN ignored).
+    """Rasterise ``k`` measured rows per grid cell (:func:`_rasterise_row`) and average them.
 
     ``out[f, i, j]``: field ``fields[f]`` of grid cell (i, j).
     """
@@ -501,24 +501,6 @@ def pack_bands(bands, counts, row_y, rows, starts, ends, valid):
             valid[m] = bands[r, q, F_VALID] > 0
             m += 1
     return m
-
-
-@nb.njit(cache=True, parallel=True)
-def cell_mean(maps, k, out):
-    """Average ``k`` consecutive measured rows into one grid row, ignoring NaN."""
-    nf, rows, gw = maps.shape
-    for i in nb.prange(rows // k):
-        for j in range(gw):
-            n = 0
-            for f in range(nf):
-                out[f, i, j] = 0.0
-            for q in range(k):
-                if not np.isnan(maps[0, i * k + q, j]):
-                    n += 1
-                    for f in range(nf):
-                        out[f, i, j] += maps[f, i * k + q, j]
-            for f in range(nf):
-                out[f, i, j] = out[f, i, j] / n if n else np.nan
 
 
 @nb.njit(cache=True)
@@ -562,7 +544,13 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
 
 @nb.njit(cache=True)
 def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
-    """Rasterise measured row ``r`` into ``maps[:, 0, :]`` (see :func:`rasterise`)."""
+    """Interpolate the band fields of measured row ``r`` onto the grid columns.
+
+    ``maps[f, 0, :]`` receives field ``fields[f]`` (``fields[1]`` must be the
+    interval).  Values are interpolated linearly between neighbouring valid bands
+    at most 1.6 intervals apart and extrapolated linearly ``reach`` intervals
+    beyond the ends of each run; elsewhere NaN.
+    """
     nf = fields.shape[0]
     off = 0.5 * (stride - 1)
     i = 0
@@ -593,21 +581,6 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
                 maps[f, i, jc] = bands[r, k, fields[f]]
         prev = k
     _extend_runs(maps, i, gw, stride, reach, 1)
-
-
-@nb.njit(cache=True, parallel=True)
-def rasterise(bands, counts, stride, gw, reach, fields, maps):
-    """Interpolate band fields along each row onto the grid columns.
-
-    ``maps[f]`` receives field ``fields[f]`` (``fields[1]`` must be the interval).
-    Values are interpolated linearly between neighbouring valid bands at most
-    1.6 intervals apart and extrapolated linearly ``reach`` intervals beyond
-    the ends of each run; elsewhere NaN.
-    """
-    for r in nb.prange(counts.shape[0]):
-        _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps[:, r : r + 1, :])
-
-
 
 
 @nb.njit(cache=True)

@@ -11,7 +11,7 @@ plateau is never reached and ``m`` overshoots.  This module tabulates
 with the integrated normal CDF) and inverts them:
 
 * :func:`fit_blur` finds the blur that makes every band's ramp consistent;
-* :class:`LengthCorrector` recovers ``L`` from ``m`` given ``w`` and ``sigma``.
+* :meth:`ProfileTables.true_length` recovers ``L`` from ``m`` given ``w`` and ``sigma``.
 
 Everything is in units of sigma, so one table serves every rig.
 """
