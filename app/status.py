@@ -24,6 +24,8 @@ CAMERA_FIELDS = (
     ("camera_missing_packets", "missing packets"),
     ("camera_missing_frames", "missing frames"),
     ("camera_bad_buffers", "bad buffers"),
+    ("camera_dropped_in_driver", "dropped by the driver (consumer too slow)"),
+    ("camera_discarded_at_stop", "not taken at stop"),
 )
 
 
