@@ -43,7 +43,7 @@ def make_result(rig, index: int) -> FrameResult:
     grid = np.full((h // 4, w // 4), 3.0, np.float32)
     return FrameResult(
         Frame(index, 1.0 + index / 30, 0.02, image), depth, [grid, grid * 2],
-        np.log(grid / (grid * 2)), bands, 4, coverage=0.5,
+        np.log(grid / (grid * 2)), bands, 4, timings_ms={"total": 9.0}, coverage=0.5,
     )  # fmt: skip
 
 
@@ -66,38 +66,63 @@ def test_rrd_round_trip(tmp_path, rig):
     sink.close()
     sink.close()  # twice is fine
     assert sink.describe() == f"Rerun: 3 frames in {path}; open with `rerun {path}`"
+    check_round_trip(path)
 
+
+def check_round_trip(path):
     ent = chunks_by_entity(path)
-    for name in ["/camera", "/camera/image", "/camera/image/bands/red", "/camera/depth",
-                 "/flow/red", "/flow/blue", "/flow/log_ratio", "/world/camera",
-                 "/world/camera/points", "/stats/fps", "/stats/latency_ms",
-                 "/stats/dropped", "/stats/coverage"]:  # fmt: skip
+    for name in ["/world", "/world/camera", "/world/camera/image", "/world/camera/depth",
+                 "/world/camera/depth_overlay", "/world/camera/bands/red/accepted",
+                 "/world/camera/bands/red/rejected", "/flow/red", "/flow/blue",
+                 "/flow/log_ratio", "/world/points", "/stats/rate/fps",
+                 "/stats/time_ms/latency", "/stats/time_ms/processing", "/stats/lost/dropped",
+                 "/stats/coverage/depth_on_image", "/log"]:  # fmt: skip
         assert name in ent, name
+    # no 3D content under the pinhole: the viewer would refuse to show it in 3D
+    pinholes = [e for e, b in ent.items() if column(b, "Pinhole:image_from_camera")]
+    assert pinholes == ["/world/camera"]
+    assert not [e for e, b in ent.items()
+                if e.startswith("/world/camera/") and column(b, "Points3D:positions")]
 
     K = column(ent["/world/camera"], "Pinhole:image_from_camera")[0][0]  # column-major
     assert (K[0], K[4], K[6], K[7]) == (450.0, 450.0, 199.5, 149.5)
     assert column(ent["/world/camera"], "Pinhole:resolution")[0] == [[400.0, 300.0]]
 
-    assert sorted(column(ent["/camera/depth"], "frame")) == [0, 1, 2]
-    fmt = column(ent["/camera/depth"], "DepthImage:format")[0][0]
-    buf = bytes(column(ent["/camera/depth"], "DepthImage:buffer")[0][0])
+    assert sorted(column(ent["/world/camera/depth"], "frame")) == [0, 1, 2]
+    fmt = column(ent["/world/camera/depth"], "DepthImage:format")[0][0]
+    buf = bytes(column(ent["/world/camera/depth"], "DepthImage:buffer")[0][0])
     depth = np.frombuffer(buf, np.float32).reshape(fmt["height"], fmt["width"])
     assert depth.shape == (300, 400)
     assert (depth[:150] == 0).all()  # no estimate is 0 for Rerun
     assert depth[150:] == pytest.approx(0.8)
-    assert column(ent["/camera/depth"], "DepthImage:meter")[0] == [1.0]
+    assert column(ent["/world/camera/depth"], "DepthImage:meter")[0] == [1.0]
+    assert column(ent["/world/camera/depth"], "DepthImage:depth_range")[0] == [[0.4, 1.2]]
 
-    positions = column(ent["/world/camera/points"], "Points3D:positions")
+    positions = column(ent["/world/points"], "Points3D:positions")
     assert [len(p) for p in positions] == [5000, 5000, 5000]  # 60000 subsampled
     assert {round(p[2], 4) for p in positions[0]} == {0.8}
+    # coloured by depth: 0.8 m is mid-range of 0.4-1.2 m, turbo's green
+    colors = column(ent["/world/points"], "Points3D:colors")[0]
+    r, g, b = (colors[0] >> 24) & 255, (colors[0] >> 16) & 255, (colors[0] >> 8) & 255
+    assert g > 200 and g > r and g > b
 
-    strips = column(ent["/camera/image/bands/red"], "LineStrips2D:strips")[0]
-    assert strips[1] == [[6.0, 20.0], [10.0, 20.0]]
-    colors = column(ent["/camera/image/bands/red"], "LineStrips2D:colors")[0]
-    assert colors[0] != colors[1]  # invalid band dimmed
+    accepted = column(ent["/world/camera/bands/red/accepted"], "LineStrips2D:strips")[0]
+    rejected = column(ent["/world/camera/bands/red/rejected"], "LineStrips2D:strips")[0]
+    assert accepted == [[[5.0, 10.0], [9.0, 10.0]], [[7.0, 30.0], [11.0, 30.0]]]
+    assert rejected == [[[6.0, 20.0], [10.0, 20.0]]]
+    acc_rgb = column(ent["/world/camera/bands/red/accepted"], "LineStrips2D:colors")[0]
+    rej_rgb = column(ent["/world/camera/bands/red/rejected"], "LineStrips2D:colors")[0]
+    assert acc_rgb != rej_rgb
 
-    assert column(ent["/stats/dropped"], "Scalars:scalars") == [[0.0], [1.0], [2.0]]
-    assert column(ent["/stats/coverage"], "Scalars:scalars")[0] == [0.5]
+    # flows: colour-mapped images on the analysis grid, fixed range 0-40 projector px
+    fmt = column(ent["/flow/red"], "Image:format")[0][0]
+    assert (fmt["width"], fmt["height"]) == (100, 75)
+
+    assert column(ent["/stats/lost/dropped"], "Scalars:scalars") == [[0.0], [1.0], [2.0]]
+    assert column(ent["/stats/coverage/depth_on_image"], "Scalars:scalars")[0] == [50.0]
+    # the first frame's time (compilation) is a note, not a point of the time plot
+    assert sorted(column(ent["/stats/time_ms/latency"], "frame")) == [1, 2]
+    assert "first frame" in column(ent["/log"], "TextLog:text")[0][0]
 
     reader = RrdReader(path)
     assert len(reader.blueprints()) == 1
@@ -109,7 +134,7 @@ def test_rrd_compressed_image(tmp_path, rig):
     sink.write(make_result(rig, 0), RunStats())
     sink.close()
     ent = chunks_by_entity(path)
-    blob = bytes(column(ent["/camera/image"], "EncodedImage:blob")[0][0])
+    blob = bytes(column(ent["/world/camera/image"], "EncodedImage:blob")[0][0])
     assert blob[:2] == b"\xff\xd8"  # JPEG
 
 

@@ -15,8 +15,9 @@ Entity layout (on the ``attempt`` timeline, one step per pose attempt)::
     coverage/poses, coverage/tilt_deg  Scalars: poses captured, tilt of the last one
     status                             TextLog: what happened, in plain words
 
-The recording stream is opened like :class:`~lightflow.app.sinks.rerun_sink.RerunSink`
-does (an .rrd file, or a viewer spawned on 127.0.0.1), with its process helpers.
+The recording stream is a :class:`~lightflow.app.sinks.rerun_sink.RerunOutput`, as
+for the depth sink (an .rrd file written by this process, or a viewer spawned on
+127.0.0.1).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from lightflow.app.errors import ConfigError
-from lightflow.app.sinks.rerun_sink import RerunProcess, flush_stream, open_stream
+from lightflow.app.sinks.rerun_sink import RerunOutput, RerunProcess
 from lightflow.calibration.live import PoseView, guessed_K
 from lightflow.calibration.session import Board
 
@@ -91,10 +92,12 @@ class CalibrationSink:
         self.captured = 0
         self._static_done = False
         self._closed = False
-        self._process: RerunProcess | None = None
-        self.rec, self._process = open_stream(app_id, mode, self.path, port)
+        self.output = RerunOutput(app_id, mode, self.path, port)
+        self.rec = self.output.rec
+        self._process: RerunProcess | None = self.output.process
         self.rec.send_blueprint(make_blueprint(list(projectors)))
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        self.output.pump()
 
     def _log_camera(self, size: tuple[int, int]) -> None:
         w, h = size
@@ -131,6 +134,7 @@ class CalibrationSink:
             self.captured = view.captured
             rec.log("coverage/poses", rr.Scalars(float(view.captured)))
         self.attempts += 1
+        self.output.pump()
 
     def _log_board(self, view: PoseView) -> None:
         b = self.board
@@ -152,7 +156,7 @@ class CalibrationSink:
         if self._closed:
             return
         self._closed = True
-        flush_stream(self.rec, self._process)
+        self.output.close()
 
     def describe(self) -> str:
         """How the user gets to see what was logged."""
