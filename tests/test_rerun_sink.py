@@ -176,3 +176,81 @@ def test_serve_listens_on_loopback_only(rig):
     finally:
         sink.close()
     assert not proc.is_running() or proc.status() == psutil.STATUS_ZOMBIE
+
+
+CHILD = """
+import resource, signal, sys
+sys.path.insert(0, {tests!r})
+from test_rerun_sink import make_result, RIG_FILE
+from lightflow.app.errors import LightflowError
+from lightflow.app.results import RunStats
+from lightflow.app.rig import load_rig
+from lightflow.app.sinks.rerun_sink import RerunSink
+rig = load_rig(RIG_FILE).scaled(0.25)
+mode = sys.argv[1]
+if mode == "full":
+    # a file size limit fails writes like a full disk (EFBIG instead of ENOSPC)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+    try:
+        sink = RerunSink(rig, "rrd", path=sys.argv[2])
+        for i in range(10):
+            sink.write(make_result(rig, i), RunStats())
+        sink.close()
+    except LightflowError as exc:
+        print(f"lightflow: error: {{exc}}", file=sys.stderr)
+        sys.exit(2)
+else:
+    sink = RerunSink(rig, "serve", port=int(sys.argv[2]))
+    print(sink._process.pid, flush=True)
+    sys.stdin.read()  # until killed
+"""
+
+
+def run_child(tmp_path, *args, **kwargs):
+    import subprocess
+    import sys
+
+    script = tmp_path / "child.py"
+    script.write_text(CHILD.format(tests=str(Path(__file__).parent)))
+    return subprocess.Popen([sys.executable, str(script), *args], text=True, **kwargs)
+
+
+def test_full_disk_is_one_line_and_leaves_no_file(tmp_path):
+    import subprocess
+
+    path = tmp_path / "out.rrd"
+    proc = run_child(tmp_path, "full", str(path), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith(f"lightflow: error: {path}: cannot write the Rerun file (")
+    assert "the partial file was removed" in err
+    assert not path.exists()
+
+
+def test_serve_child_dies_with_a_killed_parent(tmp_path):
+    import signal
+    import subprocess
+
+    port = free_port()
+    parent = run_child(tmp_path, "serve", str(port), stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        server = psutil.Process(int(parent.stdout.readline()))
+        assert server.is_running()
+    finally:
+        parent.send_signal(signal.SIGKILL)  # no cleanup code of lightflow runs
+        parent.wait()
+        parent.stdin.close()
+        parent.stdout.close()
+    try:
+        server.wait(timeout=10)
+    except psutil.TimeoutExpired:
+        server.kill()
+        raise AssertionError("the Rerun server outlived its killed parent") from None
+    with socket.socket() as s:
+        # free again for a new server (connections of the killed client may linger in
+        # TIME_WAIT, which SO_REUSEADDR allows, as servers use it; a listener would not)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+        s.listen()
