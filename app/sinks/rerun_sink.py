@@ -421,15 +421,15 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
     lo, hi = flow_range_px
     near, far = depth_range_m
     details = [rrb.Spatial2DView(
-        origin="world/camera", contents=["$origin/depth"], name=f"depth, {near:g}-{far:g} m",
+        origin="world/camera", contents=["$origin/depth"], name=f"depth {near:g}-{far:g} m",
     )]  # fmt: skip
     details += [
-        rrb.Spatial2DView(origin=f"flow/{ch}", name=f"{ch} flow, {lo:g}-{hi:g} proj. px")
+        rrb.Spatial2DView(origin=f"flow/{ch}", name=f"{ch} flow {lo:g}-{hi:g} projector px")
         for ch in channels
     ]
     r_lo, r_hi = LOG_RATIO_RANGE
     details.append(
-        rrb.Spatial2DView(origin="flow/log_ratio", name=f"log ratio, {r_lo:g} to {r_hi:g}")
+        rrb.Spatial2DView(origin="flow/log_ratio", name=f"log flow ratio {r_lo:g} to {r_hi:g}")
     )
 
     def plot(origin: str, name: str, **kwargs) -> rrb.TimeSeriesView:
@@ -470,9 +470,9 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
                     contents=["$origin/image", "$origin/bands/**"],
                     name="bands: colour accepted, grey rejected",
                 ),
-                rrb.Grid(*details, grid_columns=len(details)),
+                rrb.Grid(*details, grid_columns=2),
                 stats,
-                row_shares=[3, 2, 4],
+                row_shares=[3, 3, 4],
             ),
             column_shares=[3, 2],
         ),
