@@ -254,3 +254,18 @@ def test_serve_child_dies_with_a_killed_parent(tmp_path):
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind(("127.0.0.1", port))
         s.listen()
+
+
+def test_bands_without_flow_are_drawn_rejected(tmp_path, rig):
+    """A band that passed its checks but kept no flow (a static wall) is not 'accepted'."""
+    result = make_result(rig, 0)
+    result.flows_grid[0][30 // 4, :] = np.nan  # the cell row of the band at y = 30
+    path = tmp_path / "b.rrd"
+    sink = RerunSink(rig, "rrd", path=path)
+    sink.write(result, RunStats())
+    sink.close()
+    ent = chunks_by_entity(path)
+    accepted = column(ent["/world/camera/bands/red/accepted"], "LineStrips2D:strips")[0]
+    rejected = column(ent["/world/camera/bands/red/rejected"], "LineStrips2D:strips")[0]
+    assert accepted == [[[5.0, 10.0], [9.0, 10.0]]]
+    assert rejected == [[[6.0, 20.0], [10.0, 20.0]], [[7.0, 30.0], [11.0, 30.0]]]

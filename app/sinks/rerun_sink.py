@@ -7,7 +7,8 @@ Entity layout (all per frame on the ``frame`` timeline, plus ``camera_time``)::
     world/camera/image           RGB image
     world/camera/depth           DepthImage, metres, fixed colour range (0 = no estimate)
     world/camera/depth_overlay   RGBA: the same colours, see-through, drawn over the image
-    world/camera/bands/<ch>/accepted|rejected   LineStrips2D, one segment per band
+    world/camera/bands/<ch>/accepted|rejected   LineStrips2D, one segment per band;
+                                 accepted: passed the checks and kept a flow
     world/points                 Points3D in world space (NOT under the pinhole, which would
                                  hide them in 3D), coloured by depth like the depth image
     flow/<ch>, flow/log_ratio    the light flows in projector px, and their log ratio, as
@@ -78,6 +79,8 @@ OVERLAY_ALPHA = 170
 #: colours of the loss series (others: grey)
 LOST_RGB = {"dropped": (255, 150, 40), "camera_lost": (255, 60, 60)}
 OTHER_RGB = (160, 160, 160)
+#: extras of RunStats that count losses (the others are times, totals or fractions)
+LOSS_WORDS = ("drop", "lost", "missing", "fail", "underrun", "bad")
 #: plot colours: series that share a plot must be told apart without a legend
 TIME_RGB = {"latency": (255, 190, 60), "processing": (90, 170, 255)}
 PR_SET_PDEATHSIG = 1
@@ -441,8 +444,7 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
     stats = rrb.Grid(
         plot("stats/rate/fps", "frame rate (fps)"),
         plot("stats/time_ms", "ms per frame: yellow latency, blue processing"),
-        plot("stats/coverage", "coverage %: blue depth on image, green moving lit px",
-             axis_y=rrb.ScalarAxis(range=(0.0, 100.0))),
+        plot("stats/coverage", "coverage %: blue depth on image, green moving lit px"),
         plot("stats/lost", "lost frames: orange dropped, red camera, grey other"),
         plot("stats/rate/mib_per_s", "data rate (MiB/s)"),
         rrb.TextLogView(origin="log", name="notes"),
@@ -459,9 +461,14 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
                 rrb.Spatial3DView(
                     origin="world",
                     # the depth image would be back-projected a second time under the pinhole
+                    # and the image plane would hide the points behind it from this eye
                     contents=["+ $origin/**", "- /world/camera/depth", "- /world/camera/bands/**",
-                              "- /world/camera/depth_overlay"],
+                              "- /world/camera/depth_overlay", "- /world/camera/image"],
                     name="3D points, metres, coloured by depth",
+                    eye_controls=rrb.EyeControls3D(
+                        position=(0.9, -0.6, -0.5), look_target=(0.0, 0.0, 0.8),
+                        eye_up=(0.0, -1.0, 0.0),
+                    ),
                 ),
             ),
             rrb.Vertical(
@@ -604,8 +611,9 @@ class RerunSink:
         rgb8 = image_to_rgb8(frame.image)
         image = rr.Image(rgb8, color_model="RGB", draw_order=0.0)
         rec.log("world/camera/image", image.compress(self.jpeg_quality) if self.compress else image)
+        flows = dict(zip(self._channels, result.flows_grid, strict=False))
         for bands in result.bands:
-            accepted, rejected = _band_strips(bands)
+            accepted, rejected = _band_strips(bands, flows.get(bands.channel), result.stride)
             rec.log(f"world/camera/bands/{bands.channel}/accepted", accepted)
             rec.log(f"world/camera/bands/{bands.channel}/rejected", rejected)
         lo, hi = self.flow_range_px
@@ -659,9 +667,10 @@ class RerunSink:
                 rec.log("stats/coverage/moving_lit_with_depth", rr.Scalars(100.0 * m.coverage))
         rec.log("stats/lost/dropped", rr.Scalars(float(stats.dropped)))
         rec.log("stats/lost/camera_lost", rr.Scalars(float(stats.camera_lost)))
-        # queue drops and transport counters of live cameras: underruns, missing packets, ...
+        # queue drops and the loss counters of live cameras (underruns, missing packets,
+        # ...); other extras are times or totals, not losses, and have their own plots
         for key, value in stats.extra.items():
-            if key != "coverage" and isinstance(value, (int, float)):
+            if isinstance(value, (int, float)) and any(w in key for w in LOSS_WORDS):
                 if key not in self._series_named:
                     self._series_named.add(key)
                     rec.log(f"stats/lost/{key}", rr.SeriesLines(colors=OTHER_RGB, names=key),
@@ -685,21 +694,30 @@ class RerunSink:
         return f"Rerun viewer on 127.0.0.1:{self.port} ({self.frames_logged} frames sent)"
 
 
-def _band_strips(bands: BandSet) -> tuple[rr.LineStrips2D, rr.LineStrips2D]:
+def _band_strips(
+    bands: BandSet, flow_grid: np.ndarray | None, stride: int
+) -> tuple[rr.LineStrips2D, rr.LineStrips2D]:
     """Accepted bands in the channel's colour, rejected ones thinner in grey.
 
-    One horizontal segment per band, from its start to its end column.
+    One horizontal segment per band, from its start to its end column.  A band
+    is accepted when it passed the band checks *and* its grid cell kept a flow:
+    the bands of a static wall pass the first test but give no flow, and are
+    drawn as rejected.
     """
     rows = np.asarray(bands.rows, dtype=np.float32)
+    starts = np.asarray(bands.starts, np.float32)
+    ends = np.asarray(bands.ends, np.float32)
     segments = np.stack(
-        [
-            np.stack([np.asarray(bands.starts, np.float32), rows], axis=-1),
-            np.stack([np.asarray(bands.ends, np.float32), rows], axis=-1),
-        ],
-        axis=1,
+        [np.stack([starts, rows], axis=-1), np.stack([ends, rows], axis=-1)], axis=1
     )
-    valid = np.asarray(bands.valid, dtype=bool)
+    accepted = np.asarray(bands.valid, dtype=bool).copy()
+    if flow_grid is not None and len(rows):
+        gh, gw = flow_grid.shape
+        gy = np.clip((rows // stride).astype(np.intp), 0, gh - 1)
+        gx = np.clip((0.5 * (starts + ends) // stride).astype(np.intp), 0, gw - 1)
+        accepted &= np.isfinite(flow_grid[gy, gx])
     rgb = CHANNEL_RGB.get(bands.channel, (255, 255, 255))
-    accepted = rr.LineStrips2D(segments[valid], colors=rgb, radii=0.6, draw_order=3.0)
-    rejected = rr.LineStrips2D(segments[~valid], colors=REJECTED_RGB, radii=0.4, draw_order=2.0)
-    return accepted, rejected
+    return (
+        rr.LineStrips2D(segments[accepted], colors=rgb, radii=0.6, draw_order=3.0),
+        rr.LineStrips2D(segments[~accepted], colors=REJECTED_RGB, radii=0.4, draw_order=2.0),
+    )
