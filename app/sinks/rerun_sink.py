@@ -466,7 +466,7 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
                               "- /world/camera/depth_overlay", "- /world/camera/image"],
                     name="3D points, metres, coloured by depth",
                     eye_controls=rrb.EyeControls3D(
-                        position=(0.9, -0.6, -0.5), look_target=(0.0, 0.0, 0.8),
+                        position=(0.45, -0.35, -0.1), look_target=(0.0, 0.0, 0.7),
                         eye_up=(0.0, -1.0, 0.0),
                     ),
                 ),
@@ -635,7 +635,9 @@ class RerunSink:
                 rr.Image(overlay, color_model="RGBA", draw_order=1.0, opacity=0.99))
         points, _ = depth_to_points(result.depth, self._rays, None, self.max_points)
         rec.log("world/points", rr.Points3D(
-            points, colors=turbo_rgb(points[:, 2], *self.depth_range_m), radii=0.002,
+            # a few screen points wide whatever the zoom: sparse depth stays visible
+            points, colors=turbo_rgb(points[:, 2], *self.depth_range_m),
+            radii=rr.components.Radius.ui_points(2.5),
         ))  # fmt: skip
         self._log_stats(result, stats)
         self.frames_logged += 1
