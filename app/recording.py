@@ -238,9 +238,9 @@ class RecordingWriter:
         Exposure of every frame.
     queue_size : int
         Frames buffered between the producer and the writer thread.
-    put_timeout_s : float
+    put_timeout_s : float or None
         How long :meth:`write` may block when the queue is full before it
-        drops the frame.
+        drops the frame; None blocks until there is room (lossless).
     extra : callable, optional
         ``extra(root, frame)`` runs on the writer thread after the frame image
         is written, to save files beside it (e.g. ``root/truth/<stem>.npy``).
@@ -253,7 +253,7 @@ class RecordingWriter:
         exposure_s: float,
         *,
         queue_size: int = 16,
-        put_timeout_s: float = 0.5,
+        put_timeout_s: float | None = 0.5,
         extra: Callable[[Path, Frame], None] | None = None,
     ):
         if not exposure_s > 0:
@@ -334,6 +334,7 @@ class RecordingWriter:
             "dropped": self.dropped,
             "mib_written": self.bytes_written / 2**20,
             "queued": self._queue.qsize(),
+            "capacity": self._queue.maxsize,
         }
 
     def _raise_if_failed(self) -> None:
