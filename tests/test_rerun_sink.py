@@ -155,9 +155,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_serve_listens_on_loopback_only(rig):
+def test_serve_listens_on_loopback_only(rig, tmp_path):
     port = free_port()
-    sink = RerunSink(rig, "serve", port=port)
+    saved = tmp_path / "kept" / "run.rrd"
+    sink = RerunSink(rig, "serve", port=port, save_path=saved)
     try:
         proc = psutil.Process(sink._process.pid)
         listening = [
@@ -171,10 +172,12 @@ def test_serve_listens_on_loopback_only(rig):
         sink.write(make_result(rig, 0), RunStats())
         assert sink.describe() == (
             f"Rerun server on 127.0.0.1:{port}: "
-            f"`rerun --connect rerun+http://127.0.0.1:{port}/proxy`"
+            f"`rerun --connect rerun+http://127.0.0.1:{port}/proxy`; saved in {saved}"
         )
     finally:
         sink.close()
+    # what the server got is also kept in a file, complete once closed
+    assert sorted(column(chunks_by_entity(saved)["/world/camera/depth"], "frame")) == [0]
     assert not proc.is_running() or proc.status() == psutil.STATUS_ZOMBIE
 
 

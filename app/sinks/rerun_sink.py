@@ -273,6 +273,9 @@ class RerunOutput:
         The .rrd file (``rrd`` only).
     port : int
         Port of the viewer or server on 127.0.0.1.
+    save_path : Path, optional
+        With ``spawn`` or ``serve``: also write everything to this .rrd, so that
+        closing the viewer loses nothing.
 
     Attributes
     ----------
@@ -291,7 +294,10 @@ class RerunOutput:
     is a complete .rrd of its own.)
     """
 
-    def __init__(self, app_id: str, mode: str, path: Path | None = None, port: int = 9876):
+    def __init__(
+        self, app_id: str, mode: str, path: Path | None = None, port: int = 9876,
+        save_path: Path | None = None,
+    ):
         # a private stream: other code (or tests) using the global recording is unaffected
         self.rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())
         self.mode = mode
@@ -299,6 +305,7 @@ class RerunOutput:
         self.port = port
         self.url = f"rerun+http://127.0.0.1:{port}/proxy"
         self.process: RerunProcess | None = None
+        self.save_path = Path(save_path) if save_path is not None and mode != "rrd" else None
         self._failed = False
         self._next_check = 0.0
         if mode == "rrd":
@@ -326,7 +333,7 @@ class RerunOutput:
         )
         self.process.start()
         try:
-            self.rec.connect_grpc(self.url)
+            self._connect()
         except BaseException:
             self.process.stop()
             raise
@@ -345,7 +352,18 @@ class RerunOutput:
             ["--bind", "127.0.0.1", "--port", str(self.port)], log_path=log
         )
         self.process.start()
-        self.rec.connect_grpc(self.url)
+        self._connect()
+
+    def _connect(self) -> None:
+        if self.save_path is None:
+            self.rec.connect_grpc(self.url)
+            return
+        try:
+            self.save_path.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.set_sinks(rr.GrpcSink(self.url), rr.FileSink(self.save_path))
+        except (OSError, RuntimeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) else str(exc)
+            raise DriverError(f"{self.save_path}: cannot write the Rerun file: {reason}") from None
 
     def pump(self, force: bool = False) -> None:
         """Check that the .rrd is being written (at most every CHECK_INTERVAL_S; no-op else)."""
@@ -404,8 +422,9 @@ class RerunOutput:
             except RuntimeError as exc:
                 # the SDK reports a viewer that died or was closed as a severed connection
                 reason = self.process.exit_reason() if self.process else None
+                saved = f" (the run is in {self.save_path})" if self.save_path else ""
                 raise DriverError(
-                    f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}"
+                    (f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}") + saved
                 ) from None
         finally:
             if self.mode == "serve" and self.process is not None:
@@ -514,6 +533,8 @@ class RerunSink:
     flow_range_px : (float, float), optional
         Fixed colour range of the flows in projector pixels; default 0 to the
         widest line pitch of the rig's uniform patterns (40 px if none).
+    save_path : str or Path, optional
+        With ``spawn`` or ``serve``: also keep everything in this .rrd.
     """
 
     def __init__(
@@ -529,6 +550,7 @@ class RerunSink:
         jpeg_quality: int = 90,
         depth_range_m: tuple[float, float] = DEPTH_RANGE_M,
         flow_range_px: tuple[float, float] | None = None,
+        save_path: str | Path | None = None,
     ):
         if mode not in MODES:
             raise ConfigError(f"rerun mode: expected one of {', '.join(MODES)}, got {mode!r}")
@@ -556,7 +578,8 @@ class RerunSink:
         self._series_named: set[str] = set()
         self.frames_logged = 0
 
-        self.output = RerunOutput(app_id, mode, self.path, port)
+        self.save_path = Path(save_path) if save_path is not None and mode != "rrd" else None
+        self.output = RerunOutput(app_id, mode, self.path, port, save_path=self.save_path)
         self.rec = self.output.rec
         try:
             self.rec.send_blueprint(make_blueprint(rig, self.flow_range_px, self.depth_range_m))
@@ -691,9 +714,10 @@ class RerunSink:
         if self.mode == "rrd":
             n = self.frames_logged
             return f"Rerun: {n} frames in {self.path}; open with `rerun {self.path}`"
+        saved = f"; saved in {self.save_path}" if self.save_path else ""
         if self.mode == "serve":
-            return f"Rerun server on 127.0.0.1:{self.port}: `rerun --connect {self.url}`"
-        return f"Rerun viewer on 127.0.0.1:{self.port} ({self.frames_logged} frames sent)"
+            return f"Rerun server on 127.0.0.1:{self.port}: `rerun --connect {self.url}`{saved}"
+        return f"Rerun viewer on 127.0.0.1:{self.port} ({self.frames_logged} frames sent){saved}"
 
 
 def _band_strips(
