@@ -167,3 +167,43 @@ def test_viewer_shows_every_panel(rrd, viewer):
 
 def test_rerun_binary_present():
     assert shutil.which(str(rerun_binary())), rerun_binary()
+
+
+def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
+    """``--spawn``: the real (windowed) viewer on Xvfb gets every frame, listens on 127.0.0.1."""
+    from xserver import start_xvfb
+
+    if not LAVAPIPE_ICD.exists():
+        pytest.fail(f"no software Vulkan ({LAVAPIPE_ICD}): apt-get install mesa-vulkan-drivers")
+    rig = load_rig(RIG_FILE).scaled(0.25)
+    server = start_xvfb(tmp_path, 1280, 800)
+    sink = None
+    try:
+        monkeypatch.setenv("DISPLAY", server.display)
+        port = free_port()
+        saved = tmp_path / "kept.rrd"
+        sink = RerunSink(rig, "spawn", port=port, save_path=saved)
+        viewer = psutil.Process(sink._process.pid)
+        for i in range(3):
+            sink.write(disc_result(rig, i), RunStats(frames_done=i + 1))
+        sink.close()
+        listening = [
+            c.laddr for p in [viewer, *viewer.children(True)]
+            for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN
+        ]  # fmt: skip
+        assert listening and all(a.ip == "127.0.0.1" for a in listening), listening
+        client = ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy")
+        for _ in range(50):
+            state = client.get_state()
+            if state.recordings and not state.loading:
+                break
+        [recording] = state.recordings
+        frame = next(t for t in recording.timelines if t.name == "frame")
+        assert (frame.start, frame.end) == (0, 2)
+        assert len(state.views) == 13
+        assert not [(v.name, v.reports) for v in state.views if v.reports]
+        assert saved.stat().st_size > 0  # and the run is kept in a file too
+    finally:
+        if sink is not None and sink._process is not None:
+            sink._process.stop()  # the viewer outlives the sink by design; not the test
+        server.stop()
