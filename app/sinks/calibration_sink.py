@@ -1,4 +1,4 @@
-"""Rerun view of a live calibration: what the camera sees, what was decoded, pose coverage.
+"""Rerun view of a live calibration: what the camera sees, what was decoded, the poses so far.
 
 Entity layout (on the ``attempt`` timeline, one step per pose attempt)::
 
@@ -12,7 +12,8 @@ Entity layout (on the ``attempt`` timeline, one step per pose attempt)::
     world/boards/<pose>                Transform3D (rough board pose) with a Boxes3D
                                        outline of the board and an Arrows3D normal;
                                        they stay, so the 3D view shows every pose so far
-    coverage/poses, coverage/tilt_deg  Scalars: poses captured, tilt of the last one
+    poses/captured, poses/tilt_deg     Scalars: poses captured (count), tilt of the last
+                                       captured board (degrees), each in its own plot
     status                             TextLog: what happened, in plain words
 
 The recording stream is a :class:`~lightflow.app.sinks.rerun_sink.RerunOutput`, as
@@ -40,7 +41,7 @@ REJECTED_RGB = (255, 150, 40)
 
 
 def make_blueprint(projectors: list[str]) -> rrb.Blueprint:
-    """Camera with corners, the decoded maps of each projector, 3D poses, coverage, status."""
+    """Camera with corners, the decoded maps of each projector, 3D poses, pose plots, status."""
     maps = [rrb.Spatial2DView(origin=f"projectors/{name}/{axis}", name=f"{name} {axis}")
             for name in projectors for axis in ("column", "row")]
     return rrb.Blueprint(
@@ -51,7 +52,13 @@ def make_blueprint(projectors: list[str]) -> rrb.Blueprint:
             ),
             rrb.Vertical(
                 rrb.Spatial3DView(origin="world", name="board poses (rough)"),
-                rrb.TimeSeriesView(origin="coverage", name="coverage"),
+                # a count and an angle: one plot each, no legend over the lines
+                rrb.Horizontal(
+                    rrb.TimeSeriesView(origin="poses/captured", name="poses captured",
+                                       plot_legend=rrb.PlotLegend(visible=False)),
+                    rrb.TimeSeriesView(origin="poses/tilt_deg", name="board tilt (deg)",
+                                       plot_legend=rrb.PlotLegend(visible=False)),
+                ),
                 rrb.TextLogView(origin="status", name="status"),
                 row_shares=[3, 1, 1],
             ),
@@ -132,7 +139,7 @@ class CalibrationSink:
             if view.R is not None:
                 self._log_board(view)
             self.captured = view.captured
-            rec.log("coverage/poses", rr.Scalars(float(view.captured)))
+            rec.log("poses/captured", rr.Scalars(float(view.captured)))
         self.attempts += 1
         self.output.pump()
 
@@ -149,7 +156,7 @@ class CalibrationSink:
         self.rec.log(f"{path}/normal", rr.Arrows3D(origins=[centre],
                                                    vectors=[view.R.T @ normal * 0.1]))
         tilt = math.degrees(math.acos(min(1.0, abs(float(view.R[2, 2])))))
-        self.rec.log("coverage/tilt_deg", rr.Scalars(tilt))
+        self.rec.log("poses/tilt_deg", rr.Scalars(tilt))
 
     def close(self) -> None:
         """Flush everything (the .rrd is complete afterwards)."""
