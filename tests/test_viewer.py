@@ -136,6 +136,7 @@ def test_viewer_shows_every_panel(rrd, viewer):
         state = client.get_state()
         if not state.loading:
             break
+        client.take_screenshot(max_size=64)  # blocks for one paint: paces the loop
     assert not state.loading
 
     views = {v.name: v for v in state.views}
@@ -197,10 +198,13 @@ def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
             state = client.get_state()
             if state.recordings and not state.loading:
                 break
+            client.take_screenshot(max_size=64)  # blocks for one paint: paces the loop
         [recording] = state.recordings
         frame = next(t for t in recording.timelines if t.name == "frame")
         assert (frame.start, frame.end) == (0, 2)
         assert len(state.views) == 13
+        client.take_screenshot(max_size=256)  # every view painted once: reports are current
+        state = client.get_state()
         assert not [(v.name, v.reports) for v in state.views if v.reports]
         assert saved.stat().st_size > 0  # and the run is kept in a file too
     finally:
