@@ -9,6 +9,7 @@ Set ``LIGHTFLOW_SHOTS=DIR`` to keep the screenshots.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -181,6 +182,8 @@ def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
     sink = None
     try:
         monkeypatch.setenv("DISPLAY", server.display)
+        # a fresh per-user Rerun config: analytics must be switched off by lightflow itself
+        monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
         port = free_port()
         saved = tmp_path / "kept.rrd"
         sink = RerunSink(rig, "spawn", port=port, save_path=saved)
@@ -207,6 +210,8 @@ def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
         state = client.get_state()
         assert not [(v.name, v.reports) for v in state.views if v.reports]
         assert saved.stat().st_size > 0  # and the run is kept in a file too
+        config = json.loads((tmp_path / "config/rerun/analytics.json").read_text())
+        assert config["analytics_enabled"] is False
     finally:
         if sink is not None and sink._process is not None:
             sink._process.stop()  # the viewer outlives the sink by design; not the test
