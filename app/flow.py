@@ -50,6 +50,10 @@ class FlowParams:
     blur_refit_frames: int = 30
 
 
+#: frames whose moving bands are pooled for the blur fit
+BLUR_POOL_FRAMES = 8
+
+
 @nb.njit(cache=True, parallel=True)
 def _combine(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
@@ -119,6 +123,7 @@ class FlowModel:
         #: per pattern, fitted blur model (a, b): sigma^2 = a + b * magnification^2
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
+        self._pool: list[list[np.ndarray]] = []
         self.frames = 0
         #: grid stride in camera pixels (set by the pipeline)
         self.stride = 1
@@ -206,12 +211,18 @@ class FlowModel:
                 rs.append(r.ravel())
                 lines.append(pat.width_px * scale.ravel())
                 scales.append(scale)
-            # one optics model for both patterns, fitted on the long bands of both: the
+            # one optics model for both patterns, fitted on the moving bands of both: the
             # same camera, and the projectors' defocus scales with magnification alike
-            fitted = fit_blur(
-                np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
-                np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants),
-            )  # fmt: skip
+            sample = [np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
+                      np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants)]
+            moving = np.isfinite(sample[0]) & (sample[0] > sample[2] + 1.0)
+            # a small object (a ball) has too few bands in one frame: pool the moving
+            # bands of the frames since the last fit (the optics do not change)
+            self._pool.append([v[moving] for v in sample])
+            self._pool = self._pool[-BLUR_POOL_FRAMES:]
+            fitted = fit_blur(*(np.concatenate(v) for v in zip(*self._pool, strict=True)))
+            if fitted is not None:
+                self._pool = []
             for p in range(2):
                 if fitted is not None:
                     self.blur[p] = fitted

@@ -263,14 +263,21 @@ def tables() -> ProfileTables:
     return _TABLES
 
 
-def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 3000):
-    """Fit the blur model ``sigma^2 = a + b * scale^2`` to measured bands.
+def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: int = 120):
+    """Fit the blur model ``sigma^2 = a k^2 + b * scale^2`` to measured bands.
 
     Camera blur and pixel size (``a``) are fixed in camera pixels; projector
     defocus (``b``, in projector px^2) scales with the local magnification
-    ``scale`` like the line width.  For each candidate the measured widths are
-    corrected to sweeps and the ramps those sweeps imply are compared with the
-    measured ramps; the candidate with the smallest median mismatch wins.
+    ``scale`` like the line width.  Along a row the camera blur of a line of
+    slant ``s`` is wider by ``k = sqrt(1 + s^2)``.
+
+    Every moving band is solved on its own first: the sigma at which the
+    sweep its width implies (:meth:`ProfileTables.true_length`) also predicts
+    its measured ramp.  Short bands (sweep within a few sigma of the line
+    width) count as much as long ones — their ramps depend on the sweep, and
+    the tables model that — so frames of short bands only (a fan at 1 ms, a
+    ball at 5 ms) get their blur too.  A robust straight-line fit of the
+    per-band sigma^2 against the magnification^2 then gives ``(a, b)``.
 
     Parameters
     ----------
@@ -278,39 +285,59 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 3000):
         Measured width at half height, ramp, line width (camera px) and
         magnification per pixel.
     slant : numpy.ndarray, optional
-        Slant of the lines (columns per row): along a row the camera blur of a
-        slanted edge is wider by ``sqrt(1 + slant^2)``.
+        Slant of the lines (columns per row).
 
     Returns
     -------
-    (a, b) : tuple of float, or None when there are too few bands.
+    (a, b) : tuple of float, or None when there are too few moving bands.
     """
-    # clearly moving bands only: static lines say nothing about the sweep model
     ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & np.isfinite(scale)
-    ok &= m > 2.0 * line + 4.0  # long: their ramps are the line edge blurred, nothing else
+    ok &= m > line + 1.0  # moving: a static line's ramp says nothing about its sweep
     idx = np.flatnonzero(ok)
-    if idx.size < 300:  # too few clearly moving bands to tell the blur
+    if idx.size < min_bands:
         return None
     idx = idx[:: max(1, idx.size // max_pixels)]
     m, r, line, s2 = m.ravel()[idx], r.ravel()[idx], line.ravel()[idx], scale.ravel()[idx] ** 2
-    k2 = 1.0 if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
+    k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
-    best, best_cost = None, np.inf
-    spread = np.ptp(s2) > 0.15 * np.mean(s2)
-    a_grid = np.geomspace(0.09, S_AXIS[-1] ** 2, 24)
-    b_grid = np.concatenate([[0.0], np.geomspace(0.02, 4.0, 12)]) if spread else [0.0]
-    for b in b_grid:
-        for a in a_grid:
-            sigma = np.sqrt(a * k2 + b * s2)
-            if np.max(sigma) > S_AXIS[-1]:
-                continue
-            L = t.true_length(m, line, sigma)
-            pred = t.ramp(L, line, sigma)
-            res = np.abs(pred - r)
-            fin = np.isfinite(res)
-            if fin.sum() < 0.3 * res.size:
-                continue
-            cost = np.median(res[fin])
-            if cost < best_cost:
-                best, best_cost = (float(a), float(b)), cost
-    return best
+    # per band: the ramp mismatch as a function of sigma, and its sign change
+    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
+    res = np.empty((sig.size, m.size))
+    for i, sg in enumerate(sig):
+        L = t.true_length(m, line, np.full_like(m, sg))
+        res[i] = t.ramp(L, line, np.full_like(m, sg)) - r
+    # the predicted ramp grows with sigma: the root is the first sign change to >= 0
+    fin = np.isfinite(res)
+    pos = fin & (res >= 0)
+    first = np.argmax(pos, axis=0)
+    has = pos.any(axis=0) & (first > 0)
+    cols = np.flatnonzero(has)
+    j = first[cols]
+    r0, r1 = res[j - 1, cols], res[j, cols]
+    good = np.isfinite(r0) & (r1 > r0)
+    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    if cols.size < min_bands // 2:
+        return None
+    sigma = sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
+    y = sigma**2
+    xa, xb = k2[cols], s2[cols]
+    # robust least squares of y = a xa + b xb (Tukey reweighting)
+    w = np.ones_like(y)
+    a, b = float(np.median(y)), 0.0
+    spread = np.ptp(xb) > 0.15 * np.mean(xb)
+    for _ in range(10):
+        if spread:
+            A = np.stack([xa, xb], axis=1) * w[:, None]
+            sol, *_ = np.linalg.lstsq(A, y * w, rcond=None)
+            a, b = float(sol[0]), float(sol[1])
+        else:
+            a, b = float(np.sum(w * w * y * xa) / np.sum(w * w * xa * xa)), 0.0
+        if b < 0.0:  # defocus cannot be negative: camera term only
+            b = 0.0
+            a = float(np.sum(w * w * y * xa) / np.sum(w * w * xa * xa))
+        e = y - a * xa - b * xb
+        scale_e = 1.4826 * float(np.median(np.abs(e))) + 1e-6
+        u = e / (4.685 * scale_e)
+        w = np.where(np.abs(u) < 1, 1 - u * u, 0.0)
+    a = float(np.clip(a, 0.05, S_AXIS[-1] ** 2))
+    return a, float(b)
