@@ -20,7 +20,7 @@ import numpy as np
 from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
 from .patterns import local_pitch
-from .profile_model import M_STEP, S_AXIS, W_STEP, fit_blur, tables, trilinear_at
+from .profile_model import M_AXIS, M_STEP, R_STEP, S_AXIS, W_STEP, fit_blur, joint_at, tables
 from .rig import Rig
 
 
@@ -34,9 +34,19 @@ class FlowParams:
         Gaussian sigma, in camera pixels, of the masked smoothing of the log
         flow ratio (the paper uses 2 to 60); 0 disables it.
     static_factor : float
-        A band counts as moving only if its length exceeds the line width in
-        camera pixels times this factor plus ``static_margin_px``.
+        A band counts as moving only if its sweep, averaged over a few cells,
+        exceeds the line width in camera pixels times this factor plus
+        ``static_margin_px``.
     static_margin_px : float
+    measure_factor, measure_margin_px : float
+        Sweeps of single cells below ``measure_factor`` line widths plus
+        ``measure_margin_px`` are not measured at all (a static line).
+    sweep_smoothing_px : float
+        Gaussian sigma (camera px) of the averaging of the sweeps of each
+        pattern before the moving test and the log ratio.
+    sweep_outlier : float
+        Cells whose sweep differs from that average by more than this fraction
+        of it are dropped (another surface).
     outlier_sigmas : float
         Pixels whose log ratio is further than this many robust deviations
         from the smoothed field are dropped before the final smoothing.
@@ -45,6 +55,10 @@ class FlowParams:
     smoothing_px: float = 24.0
     static_factor: float = 0.9
     static_margin_px: float = 1.0
+    measure_factor: float = 0.5
+    measure_margin_px: float = 0.5
+    sweep_smoothing_px: float = 8.0
+    sweep_outlier: float = 0.4
     fill_fraction: float = 0.3
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
@@ -55,33 +69,39 @@ BLUR_POOL_FRAMES = 8
 
 
 @nb.njit(cache=True, parallel=True)
-def _combine(
+def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
-    inv, s_lo, s_step, w_step, m_step, static_factor, static_margin, log_ratio, flows,
+    inv, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin, static_factor,
+    static_margin, sweeps, moving_at, pitch, interval_ratio,
 ):  # fmt: skip
-    """Per grid pixel: blur-corrected sweeps, flows, log ratio (see FlowModel.combine)."""
-    gh, gw = log_ratio.shape
+    """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
+
+    ``moving_at[p]``: the sweep (index units) above which the line clearly moves;
+    ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0).
+    Cells whose sweep is hidden in the line width (below ``lo_factor * line +
+    lo_margin``) or whose bands fill the interval get NaN.
+    """
+    gh, gw = interval_ratio.shape
     nu = u_of.shape[0]
     for i in nb.prange(gh):
         for j in range(gw):
-            log_ratio[i, j] = np.nan
-            flows[0, i, j] = np.nan
-            flows[1, i, j] = np.nan
+            interval_ratio[i, j] = np.nan
+            for p in range(2):
+                sweeps[p, i, j] = np.nan
+                moving_at[p, i, j] = np.nan
             B0 = grids[0, 1, i, j]
             B1 = grids[1, 1, i, j]
             if not (B0 > 0.0 and B1 > 0.0):
                 continue
             u = 0.0
-            interval_ratio = math.log(B1 / B0)
+            ir = math.log(B1 / B0)
             if single:
-                t = (interval_ratio - u_lo) / u_step
+                t = (ir - u_lo) / u_step
                 if not (t >= 0.0 and t <= nu - 1):
                     continue
                 k = min(int(t), nu - 2)
                 u = u_of[k] + (t - k) * (u_of[k + 1] - u_of[k])
             ok = True
-            lf0 = 0.0
-            lf1 = 0.0
             for p in range(2):
                 m = grids[p, 0, i, j]
                 B = grids[p, 1, i, j]
@@ -93,24 +113,27 @@ def _combine(
                 line = line_px[p] * scale
                 # camera blur is isotropic: along a row it widens a slanted edge
                 sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
-                L = trilinear_at(inv, s_lo, s_step, w_step, m_step, sigma, line, m)
-                if not (L > static_factor * line + static_margin):
-                    ok = False  # no clear sweep: a static (or nearly static) line
+                r = grids[p, 2, i, j]
+                if m >= m_max:
+                    # far beyond line width and blur: the width at half height is the sweep
+                    L = m
+                else:
+                    # width and ramp together: a sweep shorter than the line shows in the ramps
+                    L = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
+                if not (L > lo_factor * line + lo_margin):
+                    ok = False  # no measurable sweep: a static (or nearly static) line
                     break
                 if L + line + 2.0 * sigma > B:
                     ok = False  # swept line and its blur fill the interval: bands overlap
                     break
-                flows[p, i, j] = L / B * P
-                if p == 0:
-                    lf0 = math.log(L / B)
-                else:
-                    lf1 = math.log(L / B)
+                sweeps[p, i, j] = L / B
+                moving_at[p, i, j] = (static_factor * line + static_margin) / B
+                pitch[p, i, j] = P
             if not ok:
-                flows[0, i, j] = np.nan
-                flows[1, i, j] = np.nan
+                for p in range(2):
+                    sweeps[p, i, j] = np.nan
                 continue
-            # same projector: the sweeps are equal, the intervals carry the ratio
-            log_ratio[i, j] = interval_ratio if single else lf0 - lf1
+            interval_ratio[i, j] = ir
 
 
 class FlowModel:
@@ -179,19 +202,44 @@ class FlowModel:
         if not self._fitted or self.frames % params.blur_refit_frames == 0:
             self._refit_blur(grids)
         gh, gw = grids.shape[2:]
-        log_ratio = np.empty((gh, gw), np.float32)
-        flows = np.empty((2, gh, gw), np.float32)
-        _combine(
+        sweeps = np.empty((2, gh, gw))
+        moving_at = np.empty((2, gh, gw))
+        pitch = np.ones((2, gh, gw))
+        interval_ratio = np.empty((gh, gw))
+        _sweeps(
             grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
-            self._u_lo, self._u_step, self._u_of, tab.inverse, S_AXIS[0], S_AXIS[1] - S_AXIS[0],
-            W_STEP, M_STEP, params.static_factor, params.static_margin_px, log_ratio, flows,
+            self._u_lo, self._u_step, self._u_of, tab.joint, S_AXIS[0], S_AXIS[1] - S_AXIS[0],
+            W_STEP, M_STEP, R_STEP, M_AXIS[-1] - 1.0, params.measure_factor,
+            params.measure_margin_px, params.static_factor, params.static_margin_px,
+            sweeps, moving_at, pitch, interval_ratio,
         )  # fmt: skip
+        # Average the sweeps themselves over a few cells before any decision or log:
+        # a short sweep is noisy, and both thresholding it and taking its log bias it
+        # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
+        sigma = params.sweep_smoothing_px / max(1, self.stride)
+        both = np.isfinite(sweeps[0]) & np.isfinite(sweeps[1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sm = [masked_smooth(np.where(both, sweeps[p], np.nan).astype(np.float32), sigma, 1.0)
+                  for p in range(2)]  # fmt: skip
+            moving = both & (sm[0] > moving_at[0]) & (sm[1] > moving_at[1])
+            # a cell far from the average around it is another surface (a static wall
+            # beside a blade): the average must not carry it over the static limit.  The
+            # test is two-sided, so it does not bias what passes.
+            for p in range(2):
+                moving &= np.abs(sweeps[p] - sm[p]) < params.sweep_outlier * sm[p]
+            log_ratio = np.where(
+                moving, interval_ratio if self.single else np.log(sm[0] / sm[1]), np.nan
+            ).astype(np.float32)
+            flows = np.stack([np.where(moving, sm[p] * pitch[p], np.nan) for p in range(2)])
+        flows = flows.astype(np.float32)
         self.frames += 1
         return log_ratio, [flows[0], flows[1]], list(self.blur_px)
 
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""
-        sub = grids[:, :, ::3, ::3]
+        # every third cell suffices on a large object; a small one (a ball) needs them all
+        k = 3 if np.count_nonzero(np.isfinite(grids[0, 0, ::3, ::3])) > 3000 else 1
+        sub = grids[:, :, ::k, ::k]
         with np.errstate(invalid="ignore", divide="ignore"):
             B0, B1 = sub[0, 1], sub[1, 1]
             if self.single:
@@ -202,7 +250,7 @@ class FlowModel:
                 m, B, r, slant = sub[p]
                 # only where the line spacing changes slowly (planes, gentle curves): on
                 # strongly curved parts the edges also carry the change of magnification
-                dB = np.abs(np.gradient(B, axis=1)) / (3 * self.stride)
+                dB = np.abs(np.gradient(B, axis=1)) / (k * self.stride)
                 m = np.where(dB < 0.1, m, np.nan)
                 slants.append(slant.ravel())
                 P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
@@ -257,8 +305,28 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
     den = _gauss(m, sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
-    out[~(mask | (den >= fill_fraction))] = np.nan
+    fill = den >= fill_fraction
+    if fill_fraction < 1.0:
+        # only holes are filled: data on both sides (left and right, or above and
+        # below) within the kernel.  Beside a convex edge (a blade, a ball's limb)
+        # a third of the kernel is valid too, and filling there grew the object.
+        # More than half the kernel valid is inside a straight edge, never beyond it.
+        fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
+    out[~(mask | fill)] = np.nan
     return out
+
+
+def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
+    """Pixels with a ``mask`` pixel within ``r`` on both sides along a row or a column."""
+    m = mask.astype(np.uint8)
+    row = np.ones((1, r + 1), np.uint8)
+    col = np.ones((r + 1, 1), np.uint8)
+    # one-sided dilations: the anchor at one end of the kernel looks only one way
+    left = cv2.dilate(m, row, anchor=(r, 0))
+    right = cv2.dilate(m, row, anchor=(0, 0))
+    up = cv2.dilate(m, col, anchor=(0, r))
+    down = cv2.dilate(m, col, anchor=(0, 0))
+    return ((left & right) | (up & down)).astype(bool)
 
 
 def smooth_log_ratio(

@@ -40,6 +40,14 @@ L_STEP = 0.5
 L_AXIS = np.arange(0.0, 48.0 + 1e-9, L_STEP)
 M_STEP = 0.25
 M_AXIS = np.arange(0.0, 52.0 + 1e-9, M_STEP)
+#: ramp axis of the joint inverse (camera px)
+R_STEP = 0.1
+R_AXIS = np.arange(0.0, 4.0 + 1e-9, R_STEP)
+#: noise of a measured ramp relative to that of a measured width (the ramp averages
+#: four crossings, two of them on the flatter foot of the edges)
+RAMP_NOISE = 0.7
+#: shortest sweep the joint inverse reports (a static line has no sweep to measure)
+L_MIN = 0.5
 PHASES = 4
 
 
@@ -154,6 +162,99 @@ def _invert_table(m_tab, l_axis, m_axis, out):
                     break
 
 
+@nb.njit(cache=True, parallel=True)
+def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out):
+    """Per (sigma, w): the sweep that best explains a measured (width, ramp) pair.
+
+    ``L = argmin (m - m(L))^2 + ((r - r(L)) / rho)^2``: long bands are decided by
+    their width (their ramps are the line edge, whatever the sweep), bands not
+    longer than the line by their ramps (their width is the line's), and bands
+    in between by both.  NaN where the tables have no data.
+    """
+    ns, nw, nl = m_tab.shape
+    nm = m_axis.shape[0]
+    nr = r_axis.shape[0]
+    fine = 10
+    for idx in nb.prange(ns * nw):
+        i = idx // nw
+        j = idx % nw
+        # the model curve (m(L), r(L)) sampled finely (linear between table rows)
+        k0 = 0
+        while k0 < nl and l_axis[k0] < l_min:
+            k0 += 1
+        n = (nl - 1 - k0) * fine + 1
+        cm = np.empty(n)
+        cr = np.empty(n)
+        cl = np.empty(n)
+        for k in range(k0, nl - 1):
+            for f in range(fine):
+                q = (k - k0) * fine + f
+                t = f / fine
+                cm[q] = m_tab[i, j, k] + t * (m_tab[i, j, k + 1] - m_tab[i, j, k])
+                cr[q] = r_tab[i, j, k] + t * (r_tab[i, j, k + 1] - r_tab[i, j, k])
+                cl[q] = l_axis[k] + t * (l_axis[k + 1] - l_axis[k])
+        cm[n - 1] = m_tab[i, j, nl - 1]
+        cr[n - 1] = r_tab[i, j, nl - 1]
+        cl[n - 1] = l_axis[nl - 1]
+        inv_rho2 = 1.0 / (rho * rho)
+        for a in range(nm):
+            mv = m_axis[a]
+            for b in range(nr):
+                rv = r_axis[b]
+                best = np.inf
+                bl = np.nan
+                for q in range(n):
+                    if not (np.isfinite(cm[q]) and np.isfinite(cr[q])):
+                        continue
+                    dm = mv - cm[q]
+                    dr = rv - cr[q]
+                    c = dm * dm + dr * dr * inv_rho2
+                    if c < best:
+                        best = c
+                        bl = cl[q]
+                out[i, j, a, b] = bl
+
+
+@nb.njit(cache=True, inline="always")
+def joint_at(table, s_lo, s_step, w_step, m_step, r_step, sigma, w, m, r):
+    """Sweep from (width ``m``, ramp ``r``) for ``sigma`` and line width ``w`` (4-linear).
+
+    Sigma is clamped to the table; NaN when ``w``, ``m`` or ``r`` is outside it.
+    """
+    n0, n1, n2, n3 = table.shape
+    a = min(max((sigma - s_lo) / s_step, 0.0), n0 - 1.0)
+    b = w / w_step
+    c = m / m_step
+    d = min(max(r / r_step, 0.0), n3 - 1.0)
+    if not (b >= 0.0 and c >= 0.0 and b <= n1 - 1 and c <= n2 - 1):
+        return np.nan
+    i = min(int(a), n0 - 2)
+    j = min(int(b), n1 - 2)
+    q = min(int(c), n2 - 2)
+    e = min(int(d), n3 - 2)
+    fa = a - i
+    fb = b - j
+    fc = c - q
+    fd = d - e
+    acc = 0.0
+    for di in range(2):
+        wa = fa if di else 1.0 - fa
+        for dj in range(2):
+            wb = fb if dj else 1.0 - fb
+            for dq in range(2):
+                wc = fc if dq else 1.0 - fc
+                for de in range(2):
+                    wd = fd if de else 1.0 - fd
+                    acc += wa * wb * wc * wd * table[i + di, j + dj, q + dq, e + de]
+    return acc
+
+
+@nb.njit(cache=True, parallel=True)
+def _joint_many(table, s_lo, s_step, sigma, w, m, r, out):
+    for k in nb.prange(m.shape[0]):
+        out[k] = joint_at(table, s_lo, s_step, W_STEP, M_STEP, R_STEP, sigma[k], w[k], m[k], r[k])
+
+
 @nb.njit(cache=True, inline="always")
 def trilinear_at(table, lo0, st0, step1, step2, x0, x1, x2):
     """One trilinear lookup; axis 0 from ``lo0`` in steps ``st0`` (clamped), the others from 0."""
@@ -210,6 +311,7 @@ class ProfileTables:
         try:
             with np.load(path) as d:
                 self.m, self.r, self.inverse = d["m"], d["r"], d["inverse"]
+                self.joint = d["joint"]
             return
         except (OSError, KeyError, ValueError):
             pass
@@ -219,10 +321,12 @@ class ProfileTables:
         _measure_table(S_AXIS, W_AXIS, L_AXIS, self.m, self.r)
         self.inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
         _invert_table(self.m, L_AXIS, M_AXIS, self.inverse)
+        self.joint = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS), len(R_AXIS)), np.float32)
+        _joint_table(self.m, self.r, L_AXIS, M_AXIS, R_AXIS, RAMP_NOISE, L_MIN, self.joint)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse)
+            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse, joint=self.joint)
             tmp.replace(path)
         except OSError:
             pass  # an unwritable cache only costs the rebuild
@@ -242,6 +346,15 @@ class ProfileTables:
         NaN where the sweep is hidden in the line width and blur (static lines).
         """
         return self._lookup(self.inverse, W_STEP, M_STEP, sigma, w, m)
+
+    def joint_length(self, m, r, w, sigma) -> np.ndarray:
+        """Sweep ``L`` from the measured width ``m`` and ramp ``r`` together (camera px)."""
+        shape = np.broadcast(m, r, w, sigma).shape
+        args = [np.ascontiguousarray(np.broadcast_to(v, shape), dtype=np.float64).ravel()
+                for v in (sigma, w, m, r)]  # fmt: skip
+        out = np.empty(args[0].size)
+        _joint_many(self.joint, S_AXIS[0], S_AXIS[1] - S_AXIS[0], *args, out)
+        return out.reshape(shape)
 
     def measured_width(self, L, w, sigma) -> np.ndarray:
         """Forward model: the width at half height the detector reports."""
@@ -319,6 +432,13 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     if cols.size < min_bands // 2:
         return None
     sigma = sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
+    # only bands whose width decides their sweep at that sigma: for a sweep within
+    # the line width the width is the line's, and a smaller sigma would fake a sweep
+    L = t.true_length(m[cols], line[cols], sigma)
+    keep = L > line[cols] + 1.5 * sigma
+    cols, sigma = cols[keep], sigma[keep]
+    if cols.size < min_bands // 2:
+        return None
     y = sigma**2
     xa, xb = k2[cols], s2[cols]
     # robust least squares of y = a xa + b xb (Tukey reweighting)
