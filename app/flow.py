@@ -20,7 +20,17 @@ import numpy as np
 from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
 from .patterns import local_pitch
-from .profile_model import M_AXIS, M_STEP, R_STEP, S_AXIS, W_STEP, fit_blur, joint_at, tables
+from .profile_model import (
+    M_AXIS,
+    M_STEP,
+    R_STEP,
+    S_AXIS,
+    W_STEP,
+    fit_blur,
+    joint_at,
+    tables,
+    trilinear_at,
+)
 from .rig import Rig
 
 
@@ -71,8 +81,8 @@ BLUR_POOL_FRAMES = 8
 @nb.njit(cache=True, parallel=True)
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
-    inv, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin, static_factor,
-    static_margin, sweeps, moving_at, pitch, interval_ratio,
+    inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
+    static_factor, static_margin, sweeps, moving_at, pitch, interval_ratio,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
@@ -117,6 +127,10 @@ def _sweeps(
                 if m >= m_max:
                     # far beyond line width and blur: the width at half height is the sweep
                     L = m
+                elif m > line + 4.0 * sigma + 2.0:
+                    # a long band: its ramps are the line edge, its width alone decides
+                    # (the same answer as the joint inverse, for half the memory reads)
+                    L = trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
                 else:
                     # width and ramp together: a sweep shorter than the line shows in the ramps
                     L = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
@@ -134,6 +148,56 @@ def _sweeps(
                     sweeps[p, i, j] = np.nan
                 continue
             interval_ratio[i, j] = ir
+
+
+@nb.njit(cache=True, parallel=True)
+def _pack(sweeps, stack):
+    """``stack[..., p]``: sweep of pattern p where both are valid (else 0); ``[..., 2]``: mask."""
+    gh, gw = stack.shape[:2]
+    for i in nb.prange(gh):
+        for j in range(gw):
+            a = sweeps[0, i, j]
+            b = sweeps[1, i, j]
+            if np.isfinite(a) and np.isfinite(b):
+                stack[i, j, 0] = a
+                stack[i, j, 1] = b
+                stack[i, j, 2] = 1.0
+            else:
+                stack[i, j, 0] = 0.0
+                stack[i, j, 1] = 0.0
+                stack[i, j, 2] = 0.0
+
+
+@nb.njit(cache=True, parallel=True)
+def _decide(sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, log_ratio, flows):
+    """Moving test on the averaged sweeps, then the log ratio and the flows (projector px).
+
+    A cell far from the average around it is another surface (a static wall beside a
+    blade): the average must not carry it over the static limit.  The test is
+    two-sided, so it does not bias what passes.
+    """
+    gh, gw = log_ratio.shape
+    for i in nb.prange(gh):
+        for j in range(gw):
+            log_ratio[i, j] = np.nan
+            flows[0, i, j] = np.nan
+            flows[1, i, j] = np.nan
+            den = blurred[i, j, 2]
+            both = np.isfinite(sweeps[0, i, j]) and np.isfinite(sweeps[1, i, j])
+            if not (den > 0.0 and both):
+                continue
+            ok = True
+            for p in range(2):
+                sm = blurred[i, j, p] / den
+                if not (sm > moving_at[p, i, j]) or abs(sweeps[p, i, j] - sm) >= outlier * sm:
+                    ok = False
+            if not ok:
+                continue
+            s0 = blurred[i, j, 0] / den
+            s1 = blurred[i, j, 1] / den
+            flows[0, i, j] = s0 * pitch[0, i, j]
+            flows[1, i, j] = s1 * pitch[1, i, j]
+            log_ratio[i, j] = interval_ratio[i, j] if single else math.log(s0 / s1)
 
 
 class FlowModel:
@@ -202,36 +266,29 @@ class FlowModel:
         if not self._fitted or self.frames % params.blur_refit_frames == 0:
             self._refit_blur(grids)
         gh, gw = grids.shape[2:]
-        sweeps = np.empty((2, gh, gw))
-        moving_at = np.empty((2, gh, gw))
-        pitch = np.ones((2, gh, gw))
-        interval_ratio = np.empty((gh, gw))
+        sweeps = np.empty((2, gh, gw), np.float32)
+        moving_at = np.empty((2, gh, gw), np.float32)
+        pitch = np.ones((2, gh, gw), np.float32)
+        interval_ratio = np.empty((gh, gw), np.float32)
         _sweeps(
             grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
-            self._u_lo, self._u_step, self._u_of, tab.joint, S_AXIS[0], S_AXIS[1] - S_AXIS[0],
-            W_STEP, M_STEP, R_STEP, M_AXIS[-1] - 1.0, params.measure_factor,
-            params.measure_margin_px, params.static_factor, params.static_margin_px,
-            sweeps, moving_at, pitch, interval_ratio,
+            self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
+            S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, M_AXIS[-1] - 1.0,
+            params.measure_factor, params.measure_margin_px, params.static_factor,
+            params.static_margin_px, sweeps, moving_at, pitch, interval_ratio,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
         # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
+        # Both patterns and their common mask in one 3-channel blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
-        both = np.isfinite(sweeps[0]) & np.isfinite(sweeps[1])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            sm = [masked_smooth(np.where(both, sweeps[p], np.nan).astype(np.float32), sigma, 1.0)
-                  for p in range(2)]  # fmt: skip
-            moving = both & (sm[0] > moving_at[0]) & (sm[1] > moving_at[1])
-            # a cell far from the average around it is another surface (a static wall
-            # beside a blade): the average must not carry it over the static limit.  The
-            # test is two-sided, so it does not bias what passes.
-            for p in range(2):
-                moving &= np.abs(sweeps[p] - sm[p]) < params.sweep_outlier * sm[p]
-            log_ratio = np.where(
-                moving, interval_ratio if self.single else np.log(sm[0] / sm[1]), np.nan
-            ).astype(np.float32)
-            flows = np.stack([np.where(moving, sm[p] * pitch[p], np.nan) for p in range(2)])
-        flows = flows.astype(np.float32)
+        stack = np.empty((gh, gw, 3), np.float32)
+        _pack(sweeps, stack)
+        blurred = _gauss(stack, sigma) if sigma > 0 else stack
+        log_ratio = np.empty((gh, gw), np.float32)
+        flows = np.empty((2, gh, gw), np.float32)
+        _decide(sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
+                params.sweep_outlier, log_ratio, flows)  # fmt: skip
         self.frames += 1
         return log_ratio, [flows[0], flows[1]], list(self.blur_px)
 
