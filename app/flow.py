@@ -57,6 +57,9 @@ class FlowParams:
     sweep_outlier : float
         Cells whose sweep differs from that average by more than this fraction
         of it are dropped (another surface).
+    measured_share : float
+        Cells where less than this share of the banded cells around have a
+        measurable sweep are dropped (sweeps at the floor, selected by noise).
     outlier_sigmas : float
         Pixels whose log ratio is further than this many robust deviations
         from the smoothed field are dropped before the final smoothing.
@@ -69,6 +72,7 @@ class FlowParams:
     measure_margin_px: float = 0.5
     sweep_smoothing_px: float = 8.0
     sweep_outlier: float = 0.4
+    measured_share: float = 0.6
     fill_fraction: float = 0.3
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
@@ -82,11 +86,12 @@ BLUR_POOL_FRAMES = 8
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, sweeps, moving_at, pitch, interval_ratio,
+    static_factor, static_margin, sweeps, moving_at, pitch, interval_ratio, banded,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
     ``moving_at[p]``: the sweep (index units) above which the line clearly moves;
+    ``banded``: 1 where both patterns have a band (moving or not), else 0;
     ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0).
     Cells whose sweep is hidden in the line width (below ``lo_factor * line +
     lo_margin``) or whose bands fill the interval get NaN.
@@ -96,6 +101,7 @@ def _sweeps(
     for i in nb.prange(gh):
         for j in range(gw):
             interval_ratio[i, j] = np.nan
+            banded[i, j] = 0.0
             for p in range(2):
                 sweeps[p, i, j] = np.nan
                 moving_at[p, i, j] = np.nan
@@ -103,6 +109,8 @@ def _sweeps(
             B1 = grids[1, 1, i, j]
             if not (B0 > 0.0 and B1 > 0.0):
                 continue
+            if np.isfinite(grids[0, 0, i, j]) and np.isfinite(grids[1, 0, i, j]):
+                banded[i, j] = 1.0
             u = 0.0
             ir = math.log(B1 / B0)
             if single:
@@ -151,11 +159,13 @@ def _sweeps(
 
 
 @nb.njit(cache=True, parallel=True)
-def _pack(sweeps, stack):
-    """``stack[..., p]``: sweep of pattern p where both are valid (else 0); ``[..., 2]``: mask."""
+def _pack(sweeps, banded, stack):
+    """``stack[..., p]``: sweep of pattern p where both are valid (else 0); ``[..., 2]``: mask;
+    ``[..., 3]``: where both patterns have bands."""
     gh, gw = stack.shape[:2]
     for i in nb.prange(gh):
         for j in range(gw):
+            stack[i, j, 3] = banded[i, j]
             a = sweeps[0, i, j]
             b = sweeps[1, i, j]
             if np.isfinite(a) and np.isfinite(b):
@@ -169,12 +179,17 @@ def _pack(sweeps, stack):
 
 
 @nb.njit(cache=True, parallel=True)
-def _decide(sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, log_ratio, flows):
+def _decide(
+    sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, share, log_ratio, flows
+):  # fmt: skip
     """Moving test on the averaged sweeps, then the log ratio and the flows (projector px).
 
     A cell far from the average around it is another surface (a static wall beside a
     blade): the average must not carry it over the static limit.  The test is
-    two-sided, so it does not bias what passes.
+    two-sided, so it does not bias what passes.  Where only a few of the banded cells
+    around have a measurable sweep, the sweeps are at the floor of what can be
+    measured, and the few that passed are the ones whose noise pushed them up:
+    such cells are dropped (``share``).
     """
     gh, gw = log_ratio.shape
     for i in nb.prange(gh):
@@ -185,6 +200,8 @@ def _decide(sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, 
             den = blurred[i, j, 2]
             both = np.isfinite(sweeps[0, i, j]) and np.isfinite(sweeps[1, i, j])
             if not (den > 0.0 and both):
+                continue
+            if den < share * blurred[i, j, 3]:
                 continue
             ok = True
             for p in range(2):
@@ -270,25 +287,26 @@ class FlowModel:
         moving_at = np.empty((2, gh, gw), np.float32)
         pitch = np.ones((2, gh, gw), np.float32)
         interval_ratio = np.empty((gh, gw), np.float32)
+        banded = np.empty((gh, gw), np.float32)
         _sweeps(
             grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, M_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
-            params.static_margin_px, sweeps, moving_at, pitch, interval_ratio,
+            params.static_margin_px, sweeps, moving_at, pitch, interval_ratio, banded,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
         # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
         # Both patterns and their common mask in one 3-channel blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
-        stack = np.empty((gh, gw, 3), np.float32)
-        _pack(sweeps, stack)
+        stack = np.empty((gh, gw, 4), np.float32)
+        _pack(sweeps, banded, stack)
         blurred = _gauss(stack, sigma) if sigma > 0 else stack
         log_ratio = np.empty((gh, gw), np.float32)
         flows = np.empty((2, gh, gw), np.float32)
         _decide(sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
-                params.sweep_outlier, log_ratio, flows)  # fmt: skip
+                params.sweep_outlier, params.measured_share, log_ratio, flows)  # fmt: skip
         self.frames += 1
         return log_ratio, [flows[0], flows[1]], list(self.blur_px)
 
