@@ -86,7 +86,7 @@ BLUR_POOL_FRAMES = 8
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, sweeps, moving_at, pitch, interval_ratio, banded,
+    static_factor, static_margin, blur_known, sweeps, moving_at, pitch, interval_ratio, banded,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
@@ -139,9 +139,12 @@ def _sweeps(
                     # a long band: its ramps are the line edge, its width alone decides
                     # (the same answer as the joint inverse, for half the memory reads)
                     L = trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
-                else:
+                elif blur_known:
                     # width and ramp together: a sweep shorter than the line shows in the ramps
                     L = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
+                else:
+                    # a short sweep read with a guessed blur is biased: wait for the fit
+                    L = np.nan
                 if not (L > lo_factor * line + lo_margin):
                     ok = False  # no measurable sweep: a static (or nearly static) line
                     break
@@ -293,7 +296,8 @@ class FlowModel:
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, M_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
-            params.static_margin_px, sweeps, moving_at, pitch, interval_ratio, banded,
+            params.static_margin_px, self._fitted, sweeps, moving_at, pitch, interval_ratio,
+            banded,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
