@@ -227,6 +227,9 @@ class FlowModel:
         self.rig = rig
         self.single = rig.single_projector
         self.pairs = rig.patterns
+        # the profile tables are loaded (or built once per machine, ~15 s) here, with
+        # the depth LUT, not on the first frame of a live capture
+        tables()
         #: per pattern, fitted blur model (a, b): sigma^2 = a + b * magnification^2
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
