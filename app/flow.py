@@ -21,7 +21,7 @@ from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
 from .patterns import local_pitch
 from .profile_model import (
-    M_AXIS,
+    L_AXIS,
     M_STEP,
     R_STEP,
     S_AXIS,
@@ -297,7 +297,7 @@ class FlowModel:
         _sweeps(
             grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
-            S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, M_AXIS[-1] - 1.0,
+            S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
             params.static_margin_px, self._fitted, sweeps, moving_at, pitch, interval_ratio,
             banded,
