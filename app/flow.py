@@ -286,7 +286,10 @@ class FlowModel:
             Per pattern, the blur sigma (camera px) at the median magnification.
         """
         tab = tables()
-        if not self._fitted or self.frames % params.blur_refit_frames == 0:
+        f = self.frames
+        # the optics do not change: refit on the pooled bands of the recent frames, often
+        # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
+        if not self._fitted or f in (1, 2, 4, 8) or f % params.blur_refit_frames == 0:
             self._refit_blur(grids)
         gh, gw = grids.shape[2:]
         sweeps = np.empty((2, gh, gw), np.float32)
@@ -346,13 +349,11 @@ class FlowModel:
             sample = [np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
                       np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants)]
             moving = np.isfinite(sample[0]) & (sample[0] > sample[2] + 1.0)
-            # a small object (a ball) has too few bands in one frame: pool the moving
-            # bands of the frames since the last fit (the optics do not change)
+            # pool the moving bands of the recent frames: a small object (a ball) has too
+            # few in one frame, and the fit of one frame is noisy (the optics do not change)
             self._pool.append([v[moving] for v in sample])
             self._pool = self._pool[-BLUR_POOL_FRAMES:]
             fitted = fit_blur(*(np.concatenate(v) for v in zip(*self._pool, strict=True)))
-            if fitted is not None:
-                self._pool = []
             for p in range(2):
                 if fitted is not None:
                     self.blur[p] = fitted
