@@ -132,13 +132,12 @@ def worker_pipeline(rig: Rig, config: PipelineConfig) -> DepthPipeline:
     The first call per rig loads the LUT from the on-disk cache or builds it;
     later calls reuse it, so tasks never carry the table.
     """
-    # one worker thread = one core: numba's parallel loops would oversubscribe
-    try:
-        import numba
+    # one worker thread = one core: numba's and OpenCV's own threads would oversubscribe
+    import cv2
+    import numba
 
-        numba.set_num_threads(1)
-    except (ImportError, ValueError):  # pragma: no cover - numba is a dependency
-        pass
+    numba.set_num_threads(1)
+    cv2.setNumThreads(1)
     # the LUT depends on the rig, the stride and the depth range only
     key = (rig.digest(), f"{config.stride} {config.depth_range!r}")
     with _WORKER_LOCK:
@@ -171,10 +170,11 @@ def scan_task(rec: str, rig: Rig | None, indices: list[int]) -> list[tuple[int, 
 
 def state_task(
     rec: str, rig: Rig | None, config: PipelineConfig, good: list[int], starts: list[int]
-) -> list[dict]:
+) -> dict:
     """The pipeline state a sequential replay has before each of the good-frame
     positions ``starts`` (ascending, > 0), found by processing only the frames
-    that change it (about one in ``crosstalk_every``)."""
+    that change it (about one in ``crosstalk_every``): ``{"states": [...], "task_s": s}``."""
+    t0 = time.perf_counter()
     recording = read_recording(rec, rig)
     pipeline = worker_pipeline(recording.rig, config)
     states: list[dict] = []
@@ -186,7 +186,7 @@ def state_task(
         if updates_state(pipeline, k):
             set_frame_count(pipeline, k)
             pipeline.process(_frame(recording, i, load_frame(recording, i)))
-    return states
+    return {"states": states, "task_s": time.perf_counter() - t0}
 
 
 def chunk_task(
@@ -361,7 +361,8 @@ class RecordingJob:
         return self.out / BOOK_DIR
 
     def marker(self, c: int) -> Path:
-        return self.book / f"chunk-{self.chunks[c][0]:08d}.json"
+        # the key in the name: a marker of other options never passes for this run's
+        return self.book / f"chunk-{self.chunks[c][0]:08d}-{self.key}.json"
 
     @property
     def frames_done(self) -> int:
@@ -687,9 +688,9 @@ def _run_jobs(client, pending, options: BatchOptions, progress: BatchProgress, j
             if job.scans_left == 0:
                 after_scan(job)
         elif what == "state":
-            job.state_s = time.perf_counter() - job.t_start
-            _write_pickle(job.book / "states.pkl", {"key": job.key, "states": result})
-            submit_chunks(job, result)
+            job.state_s = result["task_s"]  # the serial part of a recording
+            _write_pickle(job.book / "states.pkl", {"key": job.key, "states": result["states"]})
+            submit_chunks(job, result["states"])
         else:
             job.chunk_info[c] = result
             job.chunks_left -= 1

@@ -127,12 +127,23 @@ def test_rerun_does_no_work_and_resumes_a_lost_chunk(recordings, expected, clien
     # an interrupted run: one chunk's outputs and marker missing, the recording not done
     book = out / "rec1" / ".batch"
     (book / "done.json").unlink()
-    (book / "chunk-00000006.json").unlink()
+    next(book.glob("chunk-00000006-*.json")).unlink()
     for stem in ("000006", "000007", "000008"):
         (out / "rec1" / f"{stem}.npy").unlink()
     resumed = run_batch(recs, options, client=client)
     assert resumed.tasks == 1  # that chunk only: no scan, no state pass
     assert_depths_equal(out / "rec1", expected["rec1"])
+
+
+def test_cli_submits_to_a_running_scheduler(recordings, client, tmp_path, capsys):
+    out = tmp_path / "out"
+    status = main(["batch", str(recordings[3]), "--out", str(out),
+                   "--scheduler", client.scheduler.address])  # fmt: skip
+    stdout, err = capsys.readouterr()
+    assert status == 0, err
+    assert "local Dask cluster" not in err
+    assert f"1 of 1 recordings complete, {FRAMES + 3} frames, 2 tasks run" in stdout
+    assert len(list((out / "rec3").glob("*.npy"))) == FRAMES + 3
 
 
 def kill_worker_once(rec: str, indices: list[int]) -> None:

@@ -49,7 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, metavar="N",
                    help="workers of the local cluster (default: the core count)")
     p.add_argument("--chunk-frames", type=int, default=None, metavar="N",
-                   help="frames per task (rounded up to a multiple of 30; default 60)")
+                   help="frames per task (default 60)")
     p.add_argument("--bench", action="store_true",
                    help="measure frames/s with 1 and 2 local workers on copies of REC in OUT, "
                         "and estimate a 32-worker cluster")
