@@ -107,16 +107,24 @@ def restore_state(pipeline: DepthPipeline, state: dict, k: int) -> None:
     set_frame_count(pipeline, k)
 
 
-def updates_state(pipeline: DepthPipeline, k: int) -> bool:
-    """Whether the ``k``-th good frame changes the state (else the state pass skips it).
+#: the state pass processes every one of the first frames: the flow model refits its
+#: blur on several of them (frames 1, 2, 4, 8 at the time of writing) while its pool fills
+EARLY_FRAMES = 16
 
-    The pipeline relearns leak and windows on every ``crosstalk_every``-th frame;
-    the flow model refits its blur model on every ``blur_refit_frames``-th frame and
-    on every frame until a fit succeeded.
+
+def updates_state(pipeline: DepthPipeline, k: int) -> bool:
+    """Whether the ``k``-th good frame may change the state (else the state pass skips it).
+
+    Processing a frame that does not change the state is harmless (the counters are set
+    as in the replay), so this may say yes too often, never too rarely: the pipeline
+    relearns leak and windows on every ``crosstalk_every``-th frame; the flow model
+    refits its blur model on every ``blur_refit_frames``-th frame, on early frames,
+    and on every frame until a fit succeeded.
     """
     cfg = pipeline.config
     fitted = pipeline.flow_model._fitted  # no public accessor (see above)
-    return k % cfg.crosstalk_every == 0 or k % cfg.flow.blur_refit_frames == 0 or not fitted
+    return (k < EARLY_FRAMES or k % cfg.crosstalk_every == 0
+            or k % cfg.flow.blur_refit_frames == 0 or not fitted)  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- worker side
