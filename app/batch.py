@@ -159,9 +159,9 @@ def _frame(recording, i: int, image: np.ndarray):
     from lightflow.drivers.base import Frame
 
     entry = recording.frames[i]
-    # as RecordedCamera delivers it (first lap)
+    # as RecordedCamera delivers it (first lap); keep in step with drivers/replay.py
     return Frame(index=i, timestamp=entry.t, exposure_s=recording.exposure_s, image=image,
-                 name=entry.stem)  # fmt: skip
+                 name=entry.stem, bits=recording.bits)  # fmt: skip
 
 
 def scan_task(rec: str, rig: Rig | None, indices: list[int]) -> list[tuple[int, str]]:

@@ -58,7 +58,8 @@ def _warm(rec: str, rig, config) -> int:
     recording = read_recording(rec, rig)
     pipeline = worker_pipeline(recording.rig, config)
     image = load_frame(recording, 0)
-    pipeline.process(Frame(index=0, timestamp=0.0, exposure_s=recording.exposure_s, image=image))
+    pipeline.process(Frame(index=0, timestamp=0.0, exposure_s=recording.exposure_s, image=image,
+                           bits=recording.bits))  # fmt: skip
     return 0
 
 
