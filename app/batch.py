@@ -109,7 +109,7 @@ def restore_state(pipeline: DepthPipeline, state: dict, k: int) -> None:
 
 #: the state pass processes every one of the first frames: the flow model refits its
 #: blur on several of them (frames 1, 2, 4, 8 at the time of writing) while its pool fills
-EARLY_FRAMES = 16
+EARLY_FRAMES = 9
 
 
 def updates_state(pipeline: DepthPipeline, k: int) -> bool:

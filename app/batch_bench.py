@@ -124,8 +124,13 @@ def bench(
             return
         fps[n] = report.fps()
         last = report
+        busy = sum(sum(i["task_s"] for i in j.chunk_info.values()) + j.state_s
+                   for j in report.jobs)  # fmt: skip
+        per_frame = sum(i["task_s"] for j in report.jobs for i in j.chunk_info.values())
         yield (f"workers {n}: {report.frames_done} frames in {report.wall_s:.2f} s = "
-               f"{fps[n]:.2f} frames/s ({report.tasks} tasks)")  # fmt: skip
+               f"{fps[n]:.2f} frames/s ({report.tasks} tasks; workers busy with chunks and "
+               f"state passes {100 * busy / (n * report.wall_s):.0f} % of the time, "
+               f"chunk tasks {1e3 * per_frame / report.frames_done:.0f} ms/frame)")  # fmt: skip
         for job in report.jobs:  # the depth maps: gigabytes at full resolution
             shutil.rmtree(job.out, ignore_errors=True)
     if len(fps) >= 2:
