@@ -135,15 +135,22 @@ def test_rerun_does_no_work_and_resumes_a_lost_chunk(recordings, expected, clien
     assert_depths_equal(out / "rec1", expected["rec1"])
 
 
-def test_cli_submits_to_a_running_scheduler(recordings, client, tmp_path, capsys):
-    out = tmp_path / "out"
-    status = main(["batch", str(recordings[3]), "--out", str(out),
+def test_cli_on_a_running_scheduler_equals_lightflow_replay(recordings, client, tmp_path, capsys):
+    """Default pipeline options, chunks of 5 frames: the states before frames 5 and 10 come
+    from the early frames whose blur refits fill the pool."""
+    out, replayed = tmp_path / "out", tmp_path / "replayed"
+    status = main(["batch", str(recordings[3]), "--out", str(out), "--chunk-frames", "5",
                    "--scheduler", client.scheduler.address])  # fmt: skip
     stdout, err = capsys.readouterr()
     assert status == 0, err
     assert "local Dask cluster" not in err
-    assert f"1 of 1 recordings complete, {FRAMES + 3} frames, 2 tasks run" in stdout
-    assert len(list((out / "rec3").glob("*.npy"))) == FRAMES + 3
+    # scan, state pass, 3 chunks
+    assert f"1 of 1 recordings complete, {FRAMES + 3} frames, 5 tasks run" in stdout
+    assert main(["replay", str(recordings[3]), "--export-depth", str(replayed)]) == 0
+    capsys.readouterr()
+    expected = {p.stem: np.load(p) for p in replayed.glob("*.npy")}
+    assert len(expected) == FRAMES + 3
+    assert_depths_equal(out / "rec3", expected)
 
 
 def kill_worker_once(rec: str, indices: list[int]) -> None:
