@@ -10,7 +10,7 @@ APT_PACKAGES := python3-venv python3-dev gcc pkg-config libgirepository1.0-dev l
 	xserver-xorg-video-dummy iproute2 util-linux libgl1 libegl1 mesa-vulkan-drivers
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint bench bench-capture eval clean
+.PHONY: setup demo test lint bench bench-capture bench-batch eval clean
 
 setup: $(STAMP)
 
@@ -48,6 +48,13 @@ bench: setup
 bench-capture: setup
 	$(NETNS) sh -c 'ip link set lo up && cd tests && ../$(BIN)/python bench_capture.py --runs 3 --hog && \
 	  ../$(BIN)/python bench_capture.py --runs 1 --size 1600x1200 --fps 30 --frames 300 --rerun'
+
+# `lightflow batch` on a local Dask cluster: frames/s with 1 and 2 workers, 32-worker estimate
+# (4 recordings of 60 frames at 1600x1200, cycled from 4 rendered frames).
+BENCH_BATCH := out/bench-batch
+bench-batch: setup
+	[ -f $(BENCH_BATCH)/rec/recording.json ] || $(BIN)/lightflow simulate --scene board --frames 4 --out $(BENCH_BATCH)/rec
+	$(BIN)/lightflow batch $(BENCH_BATCH)/rec --out $(BENCH_BATCH)/runs --chunk-frames 30 --bench
 
 # Accuracy on synthetic recordings (1600x1200): the table and the plot in the README.
 EVAL := out/eval
