@@ -58,6 +58,8 @@ class FrameMetrics:
         Covered fraction of the moving pixels lit by every projector (NaN if none).
     median_error_m, mean_error_m, p90_error_m : float
         Absolute depth error on the moving object (NaN without any estimate there).
+    median_signed_m : float
+        Median of estimate minus truth: a bias shows here, not in the absolute error.
     off_object : float
         Fraction of depth pixels that are not on a moving object (0 without depth).
     plane_rmse_m : float
@@ -69,13 +71,14 @@ class FrameMetrics:
     n_plane : int
         Points that entered the plane RMSE.
     errors : numpy.ndarray
-        The per-pixel absolute errors (float32), for pooling over frames.
+        The per-pixel signed errors (estimate - truth, float32), for pooling over frames.
     """
 
     coverage: float
     median_error_m: float
     mean_error_m: float
     p90_error_m: float
+    median_signed_m: float
     off_object: float
     plane_rmse_m: float
     n_target: int
@@ -105,6 +108,7 @@ class RecordingMetrics:
     median_error_m: float
     mean_error_m: float
     p90_error_m: float
+    median_signed_m: float
     off_object: float
     plane_rmse_m: float
     planar: bool
@@ -228,8 +232,8 @@ def evaluate_frame(
     n_depth = int(np.count_nonzero(has_depth))
     n_off = int(np.count_nonzero(has_depth & ~moving))
     on_object = has_depth & moving & np.isfinite(truth.depth)
-    errors = np.abs(depth[on_object] - truth.depth[on_object]).astype(np.float32)
-    med, mean, p90 = _error_stats(errors)
+    errors = (depth[on_object] - truth.depth[on_object]).astype(np.float32)
+    med, mean, p90, signed = _error_stats(errors)
     rmse, n_plane = math.nan, 0
     if truth.planar and rays is not None:
         sq = []
@@ -246,6 +250,7 @@ def evaluate_frame(
         median_error_m=med,
         mean_error_m=mean,
         p90_error_m=p90,
+        median_signed_m=signed,
         off_object=n_off / n_depth if n_depth else 0.0,
         plane_rmse_m=rmse,
         n_target=n_target,
@@ -257,11 +262,15 @@ def evaluate_frame(
     )
 
 
-def _error_stats(errors: np.ndarray) -> tuple[float, float, float]:
+def _error_stats(errors: np.ndarray) -> tuple[float, float, float, float]:
+    """Median, mean and 90th percentile of the absolute errors, and the median signed error."""
     if errors.size == 0:
-        return math.nan, math.nan, math.nan
-    e = errors.astype(np.float64)
-    return float(np.median(e)), float(e.mean()), float(np.percentile(e, 90))
+        return math.nan, math.nan, math.nan, math.nan
+    signed = errors.astype(np.float64)
+    e = np.abs(signed)
+    return float(np.median(e)), float(e.mean()), float(np.percentile(e, 90)), float(
+        np.median(signed)
+    )
 
 
 def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
@@ -269,7 +278,7 @@ def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
     n_target = sum(m.n_target for m in per_frame)
     n_depth = sum(m.n_depth for m in per_frame)
     errors = np.concatenate([m.errors for m in per_frame]) if per_frame else np.empty(0)
-    med, mean, p90 = _error_stats(errors)
+    med, mean, p90, signed = _error_stats(errors)
     n_plane = sum(m.n_plane for m in per_frame)
     sq = sum(m.plane_rmse_m**2 * m.n_plane for m in per_frame if m.n_plane)
     return {
@@ -277,6 +286,7 @@ def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
         "median_error_m": med,
         "mean_error_m": mean,
         "p90_error_m": p90,
+        "median_signed_m": signed,
         "off_object": sum(m.n_off for m in per_frame) / n_depth if n_depth else 0.0,
         "plane_rmse_m": math.sqrt(sq / n_plane) if n_plane else math.nan,
     }
