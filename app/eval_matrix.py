@@ -66,8 +66,8 @@ def generated_rig(seed: int, distorted: bool = False) -> dict:
 
     One projector sits 0.10-0.35 m in front of the camera plane and the other
     0.05-0.25 m behind it (the depth difference is what makes h(z) change with
-    depth), 0.2-0.45 m to either side, toed in 15-35 degrees, with pitches of
-    16-40 projector pixels.
+    depth), one to either side, toed in 15-35 degrees towards the middle of the
+    working range (0.75 m), with pitches of 16-40 projector pixels.
     """
     rng = np.random.default_rng(seed)
     front, back = rng.uniform(0.10, 0.35), -rng.uniform(0.05, 0.25)
@@ -75,10 +75,13 @@ def generated_rig(seed: int, distorted: bool = False) -> dict:
     channels = ("red", "blue") if rng.random() < 0.5 else ("blue", "red")
     projs = []
     for i, (side, z) in enumerate(zip((-1, 1), zs, strict=True)):
-        centre = (side * rng.uniform(0.2, 0.45), rng.uniform(-0.05, 0.05), z)
+        toe = rng.uniform(15, 35)
+        # aimed at the middle of the working range (0.75 m on the camera axis), as
+        # anyone setting up a rig does: the toe-in then fixes the sideways offset
+        centre = (side * math.tan(math.radians(toe)) * (0.75 - z), rng.uniform(-0.05, 0.05), z)
         dist = (rng.uniform(-0.08, 0.08), rng.uniform(-0.03, 0.03), 0, 0, 0) if distorted else (
             0, 0, 0, 0, 0)
-        projs.append(_projector(("left", "right")[i], centre, rng.uniform(15, 35),
+        projs.append(_projector(("left", "right")[i], centre, toe,
                                 rng.uniform(1000, 1500), rng.uniform(16, 40), channels[i], dist))
     w, h = CAMERA_SIZE
     f = rng.uniform(1600, 1900)

@@ -43,7 +43,8 @@ def test_coverage_and_off_object_counting():
     assert (m.n_depth, m.n_off) == (6, 2)
     assert m.off_object == pytest.approx(2 / 6)
     # errors on moving pixels with depth: 0.01, 0.2 (single-lit still counts), 0.03, 0.05
-    assert sorted(m.errors.tolist()) == pytest.approx([0.01, 0.03, 0.05, 0.2], abs=1e-6)
+    assert sorted(np.abs(m.errors).tolist()) == pytest.approx([0.01, 0.03, 0.05, 0.2], abs=1e-6)
+    assert m.median_signed_m == pytest.approx(float(np.median(m.errors)), abs=1e-6)
     assert m.median_error_m == pytest.approx(0.04, abs=1e-6)
     assert m.mean_error_m == pytest.approx(0.0725, abs=1e-6)
     assert m.p90_error_m == pytest.approx(0.05 + 0.7 * 0.15, abs=1e-6)
@@ -204,3 +205,41 @@ def test_bench_stage_table():
     assert list(rows) == ["bands", "flow", "total", "wall per frame"]
     assert rows["bands"] == ["5.5", "9.1"]  # median and p90 of 1..10
     assert rows["wall per frame"] == ["17.5", "28.3"]
+
+
+def test_matrix_rigs_span_the_geometry_users_build():
+    """Generated rigs: one projector in front of the camera plane, toe-in 15-35 deg,
+    pitches 16-40 px, one distorted; tuning and reported seeds never overlap."""
+    from lightflow.app.eval_matrix import (
+        REPORT_SEEDS,
+        TUNING_SEEDS,
+        cropped,
+        generated_rig,
+        matrix_cases,
+    )
+    from lightflow.app.geometry import project_points
+    from lightflow.app.rig import rig_from_dict
+
+    assert not set(TUNING_SEEDS) & set(REPORT_SEEDS)
+    for seed in (*TUNING_SEEDS, *REPORT_SEEDS):
+        rig = rig_from_dict(generated_rig(seed, distorted=seed == REPORT_SEEDS[-1]), "gen")
+        zs = sorted(float(p.centre_in_camera[2]) for p in rig.projectors)
+        assert zs[0] < 0 < zs[1]  # one behind the camera plane, one in front
+        for p in rig.projectors:
+            toe = math.degrees(math.atan2(abs(p.R[2, 0]), p.R[2, 2]))
+            assert 15 <= toe <= 35
+            assert 16 <= p.patterns[0].pitch_px <= 40
+    cases = list(matrix_cases())
+    assert {c.scene for c in cases} == {"board", "tilted-board", "textured-board", "fan", "ball",
+                                        "two-balls"}  # fmt: skip
+    assert any("distorted" in c.rig_name for c in cases)
+    assert any(c.rig_name == "single-projector" for c in cases)
+    assert {c.exposure_s for c in cases if c.scene == "fan"} == {0.001}
+    assert {c.exposure_s for c in cases if "ball" in c.scene} == {0.005, 0.008}
+    # a crop sees a point where the full camera does, shifted by the crop's corner
+    full = rig_from_dict(generated_rig(REPORT_SEEDS[-1], distorted=True), "gen")
+    crop = cropped(full, (800, 600))
+    pts = np.array([[0.05, -0.03, 0.8], [-0.1, 0.07, 0.6]])
+    a = project_points(full.camera.K, full.camera.dist, pts)
+    b = project_points(crop.camera.K, crop.camera.dist, pts)
+    np.testing.assert_allclose(a - b, [[400, 300], [400, 300]], atol=1e-9)
