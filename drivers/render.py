@@ -252,9 +252,13 @@ def _line_light(foot, u, sigma):
 def _pixel_mc(
     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
-    t0, exposure, samples, offsets,
+    t0, exposure, k0, samples, offsets,
 ):  # fmt: skip
-    """Stratified Monte Carlo mean radiance (3 channels) of pixel ``(i, j)`` over the exposure."""
+    """Stratified Monte Carlo mean radiance (3 channels) of pixel ``(i, j)`` over the exposure.
+
+    Uses the ``samples`` rows ``k0 ..`` of ``offsets`` for the pixel area and
+    stratifies time over ``t0 .. t0 + exposure`` with them.
+    """
     n_pat = pat_proj.shape[0]
     n_proj = projs.shape[0]
     acc0 = 0.0
@@ -266,8 +270,9 @@ def _pixel_mc(
     ph_t = (h1 % 4093) / 4093.0
     ph_x = ((h1 // 4093) % 61) / 61.0
     ph_y = ((h1 // 249673) % 67) / 67.0
-    for k in range(samples):
-        t = t0 + exposure * ((offsets[k, 0] + ph_t) % 1.0)
+    for kk in range(samples):
+        k = k0 + kk
+        t = t0 + exposure * (((kk + 0.5) / samples + ph_t) % 1.0)
         ox = ((offsets[k, 1] + 0.5 + ph_x) % 1.0) - 0.5
         oy = ((offsets[k, 2] + 0.5 + ph_y) % 1.0) - 0.5
         dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
@@ -324,7 +329,7 @@ def render_exposure(
             a0, a1, a2 = _pixel_mc(
                 i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
                 proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk,
-                ambient, t0, exposure, samples, offsets,
+                ambient, t0, exposure, 0, samples, offsets,
             )  # fmt: skip
             out[i, j, 0] = a0
             out[i, j, 1] = a1
@@ -334,23 +339,22 @@ def render_exposure(
 # ---------------------------------------------------------------------------
 # Fast form: exact integration of the line light over a pixel x exposure box
 #
-# Where the surface seen by a pixel and its neighbours is one smooth, lit
-# primitive throughout the exposure, the projector column u is affine in the
-# pixel offset (x, y) and piecewise linear in time between KNOTS knots.  The
-# line light (box convolved with a Gaussian, i.e. a difference of erfs) is then
-# integrated exactly over that box with the n-th antiderivatives of erf.  All
-# other pixels (object edges, shadow edges, texture, occlusions starting or
-# ending within the exposure) fall back to the Monte Carlo form above.
+# The exposure is cut into KNOTS - 1 segments.  Where the surface seen by a
+# pixel and its 3x3 neighbours is one lit primitive at both knots of a
+# segment, the projector column u is taken affine in the pixel offset (x, y)
+# and linear in time over the segment, and the line light (a box convolved
+# with a Gaussian, i.e. a difference of erfs) is integrated exactly over that
+# pixel x time box with the n-th antiderivatives of erf.  Only the segments
+# where that fails (object edges, shadow edges, texture, a surface that
+# appears or leaves) are sampled by the Monte Carlo form above, with their
+# share of the samples.
 # ---------------------------------------------------------------------------
 
-KNOTS = 3  # exposure start, middle and end
+KNOTS = 3  # exposure start, middle and end: two segments
 # widths (projector px) below this are integrated by their midpoint; the error
 # is about (k w)^2 / 24 of the light, < 1e-4
 MIN_WIDTH = 0.02
 _SQRT_PI = math.sqrt(math.pi)
-# u and irradiance count as linear in time when the middle knot is this close
-LINEAR_TOL_PX = 0.01
-LINEAR_TOL_REL = 1e-3
 
 
 @nb.njit(cache=True, inline="always")
@@ -514,6 +518,49 @@ def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, tim
                                  dy, times[kk], st[kk])  # fmt: skip
 
 
+@nb.njit(cache=True)
+def _segment_exact(
+    states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
+    crosstalk, ambient, n_proj, w3, wbuf, acc,
+):  # fmt: skip
+    """Add ``weight`` x the exact mean light of pixel (ii, j) between knots ka and kb to ``acc``."""
+    n_pat = pat_proj.shape[0]
+    sa = states[ii, j, ka]
+    sb = states[ii, j, kb]
+    if sa[0] < 0:
+        return  # nothing there
+    alb = sa[1]
+    acc[0] += weight * alb * ambient[0]
+    acc[1] += weight * alb * ambient[1]
+    acc[2] += weight * alb * ambient[2]
+    for q in range(n_proj):
+        cu = 2 + 2 * q
+        if sa[cu + 1] <= 0.0:
+            continue  # not lit by this projector (the same at both knots)
+        # u across the pixel from the neighbours (same smooth surface)
+        bx = 0.25 * (
+            states[ii, j + 1, ka, cu] - states[ii, j - 1, ka, cu]
+            + states[ii, j + 1, kb, cu] - states[ii, j - 1, kb, cu]
+        )  # fmt: skip
+        by = 0.25 * (
+            states[ii + 1, j, ka, cu] - states[ii - 1, j, ka, cu]
+            + states[ii + 1, j, kb, cu] - states[ii - 1, j, kb, cu]
+        )  # fmt: skip
+        w3[0] = sb[cu] - sa[cu]
+        w3[1] = bx
+        w3[2] = by
+        u0 = 0.5 * (sa[cu] + sb[cu])
+        irr = weight * 0.5 * (sa[cu + 1] + sb[cu + 1])
+        for m in range(n_pat):
+            if pat_proj[m] != q:
+                continue
+            light = irr * _line_light_box(pat_foot[m, : pat_nfoot[m]], u0, w3, defocus[q], wbuf)
+            c = pat_channel[m]
+            acc[0] += crosstalk[0, c] * light
+            acc[1] += crosstalk[1, c] * light
+            acc[2] += crosstalk[2, c] * light
+
+
 @nb.njit(cache=True, parallel=True)
 def render_exposure_fast(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
@@ -524,36 +571,27 @@ def render_exposure_fast(
 
     ``states`` come from :func:`knot_states` at the exposure's start, middle
     and end for rows ``r0 .. r0 + len(states)``, which must include one row
-    above and below the band.  Smooth pixels are integrated exactly (see the
-    section comment); the others use :func:`_pixel_mc` with ``samples``
-    samples.  ``mc_count[i]`` receives the number of Monte Carlo pixels of row i.
+    above and below the band.  Smooth segments are integrated exactly (see the
+    section comment); the others use :func:`_pixel_mc` with their share of
+    ``samples``.  ``mc_count[i]`` receives the number of pixels of row i that
+    needed any Monte Carlo samples.
     """
     h, w = rays.shape[:2]
-    n_pat = pat_proj.shape[0]
     n_proj = projs.shape[0]
+    last = KNOTS - 1
+    seg_samples = max(samples // last, 4)
     for i in nb.prange(row_lo, row_hi):
         wbuf = np.empty(3)
         w3 = np.empty(3)
+        acc = np.empty(3)
         ii = i - r0
         n_mc = 0
         for j in range(w):
-            smooth = 0 < i < h - 1 and 0 < j < w - 1
-            if smooth:
-                for kk in range(KNOTS):
-                    sig = states[ii, j, kk, 0]
-                    alb = states[ii, j, kk, 1]
-                    for di in range(-1, 2):
-                        for dj in range(-1, 2):
-                            if (
-                                states[ii + di, j + dj, kk, 0] != sig
-                                or abs(states[ii + di, j + dj, kk, 1] - alb) > 1e-9
-                            ):
-                                smooth = False
-            if not smooth:
+            if not (0 < i < h - 1 and 0 < j < w - 1):
                 a0, a1, a2 = _pixel_mc(
                     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
                     proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
-                    crosstalk, ambient, t0, exposure, samples, offsets,
+                    crosstalk, ambient, t0, exposure, 0, samples, offsets,
                 )  # fmt: skip
                 out[i, j, 0] = a0
                 out[i, j, 1] = a1
@@ -561,58 +599,61 @@ def render_exposure_fast(
                 n_mc += 1
                 continue
             st = states[ii, j]
-            if st[0, 0] < 0:
-                out[i, j, 0] = 0.0
-                out[i, j, 1] = 0.0
-                out[i, j, 2] = 0.0
-                continue
-            alb = st[0, 1]
-            acc0 = alb * ambient[0]
-            acc1 = alb * ambient[1]
-            acc2 = alb * ambient[2]
-            for q in range(n_proj):
-                if st[0, 3 + 2 * q] <= 0.0:
-                    continue
-                cu = 2 + 2 * q
-                # one segment over the whole exposure when u and the irradiance
-                # are linear in time (static surfaces, most steady motion)
-                last = KNOTS - 1
-                lin_u = abs(st[1, cu] - 0.5 * (st[0, cu] + st[last, cu])) < LINEAR_TOL_PX
-                lin_i = abs(st[1, cu + 1] - 0.5 * (st[0, cu + 1] + st[last, cu + 1])) <= (
-                    LINEAR_TOL_REL * st[1, cu + 1]
-                )
-                step = last if lin_u and lin_i else 1
-                for seg in range(0, last, step):
-                    nxt = seg + step
-                    ua = st[seg, cu]
-                    ub = st[nxt, cu]
-                    # u across the pixel from the neighbours (same smooth surface)
-                    bx = 0.25 * (
-                        states[ii, j + 1, seg, cu] - states[ii, j - 1, seg, cu]
-                        + states[ii, j + 1, nxt, cu] - states[ii, j - 1, nxt, cu]
-                    )  # fmt: skip
-                    by = 0.25 * (
-                        states[ii + 1, j, seg, cu] - states[ii - 1, j, seg, cu]
-                        + states[ii + 1, j, nxt, cu] - states[ii - 1, j, nxt, cu]
-                    )  # fmt: skip
-                    w3[0] = ub - ua
-                    w3[1] = bx
-                    w3[2] = by
-                    irr = 0.5 * (st[seg, cu + 1] + st[nxt, cu + 1]) * step / last
-                    u0 = 0.5 * (ua + ub)
-                    for m in range(n_pat):
-                        if pat_proj[m] != q:
-                            continue
-                        light = irr * _line_light_box(
-                            pat_foot[m, : pat_nfoot[m]], u0, w3, defocus[q], wbuf
-                        )
-                        c = pat_channel[m]
-                        acc0 += crosstalk[0, c] * light
-                        acc1 += crosstalk[1, c] * light
-                        acc2 += crosstalk[2, c] * light
-            out[i, j, 0] = acc0
-            out[i, j, 1] = acc1
-            out[i, j, 2] = acc2
+            # smooth at a knot: the 3x3 neighbourhood sees one primitive, lit alike
+            smooth_k = 0
+            for kk in range(KNOTS):
+                ok = True
+                sig = st[kk, 0]
+                alb = st[kk, 1]
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        if (
+                            states[ii + di, j + dj, kk, 0] != sig
+                            or abs(states[ii + di, j + dj, kk, 1] - alb) > 1e-9
+                        ):
+                            ok = False
+                if ok:
+                    smooth_k |= 1 << kk
+            static = True
+            for kk in range(1, KNOTS):
+                for f in range(st.shape[1]):
+                    if st[kk, f] != st[0, f]:
+                        static = False
+            acc[:] = 0.0
+            if static and smooth_k == (1 << KNOTS) - 1:
+                # nothing changes during the exposure: one segment
+                _segment_exact(
+                    states, ii, j, 0, last, 1.0, pat_proj, pat_channel, pat_foot, pat_nfoot,
+                    defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
+                )  # fmt: skip
+            else:
+                mc_here = False
+                for seg in range(last):
+                    if (smooth_k >> seg) & 3 == 3:
+                        _segment_exact(
+                            states, ii, j, seg, seg + 1, 1.0 / last, pat_proj, pat_channel,
+                            pat_foot, pat_nfoot, defocus, crosstalk, ambient, n_proj, w3,
+                            wbuf, acc,
+                        )  # fmt: skip
+                    else:
+                        # an edge, shadow edge or texture inside this segment
+                        a0, a1, a2 = _pixel_mc(
+                            i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre,
+                            proj_size, proj_power, pat_proj, pat_channel, pat_foot,
+                            pat_nfoot, defocus, crosstalk, ambient,
+                            t0 + exposure * seg / last, exposure / last,
+                            (seg * seg_samples) % max(samples - seg_samples + 1, 1),
+                            seg_samples, offsets,
+                        )  # fmt: skip
+                        acc[0] += a0 / last
+                        acc[1] += a1 / last
+                        acc[2] += a2 / last
+                        mc_here = True
+                if mc_here:
+                    n_mc += 1
+            out[i, j, 0] = acc[0]
+            out[i, j, 1] = acc[1]
+            out[i, j, 2] = acc[2]
         mc_count[i] = n_mc
 
 
