@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT_PACKAGES := python3-venv python3-dev gcc pkg-config libgirepository1.0-dev libcairo2-dev \
 	gir1.2-aravis-0.8 aravis-tools-cli xvfb x11-xserver-utils xserver-xorg-core \
-	xserver-xorg-video-dummy iproute2 util-linux libgl1 libegl1
+	xserver-xorg-video-dummy iproute2 util-linux libgl1 libegl1 mesa-vulkan-drivers
 STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test lint bench bench-capture eval clean

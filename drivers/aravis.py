@@ -34,6 +34,7 @@ import numpy as np
 
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers.base import Camera, Frame
+from lightflow.drivers.pixfmt import packed_row_bytes, packing, significant_bits, unpack
 
 MIN_BUFFERS = 8
 #: seconds of frames the Aravis buffer pool holds by default
@@ -55,7 +56,11 @@ PREFERRED_FORMATS = (
     "BayerRG16", "BayerGR16", "BayerGB16", "BayerBG16",
     "BayerRG12", "BayerGR12", "BayerGB12", "BayerBG12",
     "BayerRG10", "BayerGR10", "BayerGB10", "BayerBG10",
-    "Mono8", "Mono16", "Mono12", "Mono10",
+    "BayerRG12p", "BayerGR12p", "BayerGB12p", "BayerBG12p",
+    "BayerRG12Packed", "BayerGR12Packed", "BayerGB12Packed", "BayerBG12Packed",
+    "BayerRG10p", "BayerGR10p", "BayerGB10p", "BayerBG10p",
+    "Mono8", "Mono16", "Mono12", "Mono12p", "Mono12Packed", "Mono10", "Mono10p",
+    "Mono10Packed",
 )  # fmt: skip
 
 # GenICam names the colour of the first two pixels of the first row; OpenCV
@@ -81,6 +86,8 @@ def _layout(name: str) -> tuple[str, int] | None:
     """
     if name in ("RGB8", "RGB8Packed"):
         return "rgb", 1
+    if packing(name) is not None:
+        name = name.removesuffix("Packed").removesuffix("p")  # the unpacked twin
     for depth, size in (("8", 1), ("10", 2), ("12", 2), ("16", 2)):
         if name == f"Mono{depth}":
             return "mono", size
@@ -110,14 +117,32 @@ def convert_image(
     -------
     numpy.ndarray
         A new, writable array: ``uint8`` for 8-bit formats, ``uint16`` (raw
-        10/12/16-bit values, not rescaled) otherwise.  Mono is replicated to
-        three channels; Bayer mosaics are demosaiced with OpenCV.
+        10/12/16-bit values, not rescaled; packed formats unpacked) otherwise.
+        Mono is replicated to three channels; Bayer mosaics are demosaiced
+        with OpenCV.
     """
     layout = _layout(pixel_format)
     if layout is None:
         raise DriverError(f"pixel format {pixel_format} is not supported")
     kind, size = layout
     channels = 3 if kind == "rgb" else 1
+    packed = packing(pixel_format)
+    if packed is not None:
+        bits = significant_bits(pixel_format)
+        row_bytes = packed_row_bytes(width, bits, packed)
+        stride = row_bytes + row_padding
+        if len(data) < stride * (height - 1) + row_bytes:
+            raise DriverError(
+                f"{pixel_format} image of {width}x{height} needs {stride * height} bytes, "
+                f"got {len(data)}"
+            )
+        raw = np.frombuffer(data, dtype=np.uint8, count=min(len(data), stride * height))
+        if raw.size < stride * height:
+            raw = np.concatenate([raw, np.zeros(stride * height - raw.size, np.uint8)])
+        mono = unpack(raw.reshape(height, stride)[:, :row_bytes], width, bits, packed)
+        if kind == "mono":
+            return cv2.cvtColor(mono, cv2.COLOR_GRAY2RGB)
+        return cv2.cvtColor(mono, _BAYER_CODES[kind])
     dtype = np.uint8 if size == 1 else np.dtype("<u2")
     stride = width * channels * size + row_padding
     if len(data) < stride * (height - 1) + width * channels * size:
@@ -255,6 +280,7 @@ class AravisCamera(Camera):
         self._acq_error: BaseException | None = None
         self._acq_thread: threading.Thread | None = None
         self._dropped_in_driver = 0
+        self._discarded_at_stop = 0
         self.lost_after_s = float(lost_after_s)
         self.probe_timeout_s = float(probe_timeout_s)
         self.pixel_format = ""
@@ -560,6 +586,7 @@ class AravisCamera(Camera):
             self._acq_done = False
             self._acq_error = None
         self._dropped_in_driver = 0
+        self._discarded_at_stop = 0
         self._stream = stream
         self._call("start acquisition", self._cam.start_acquisition)
 
@@ -643,6 +670,12 @@ class AravisCamera(Camera):
             with self._pending_cond:
                 while not self._pending and not self._acq_done and not self._stop.is_set():
                     self._pending_cond.wait()
+                if self._stop.is_set():
+                    # stop() ends the stream now; what was still waiting is counted
+                    self._discarded_at_stop += len(self._pending)
+                    self._pending.clear()
+                    self._pending_bytes = 0
+                    return
                 if self._pending:
                     frame_id, data, width, height, padding, stamp_ns = self._pending.popleft()
                     self._pending_bytes -= len(data)
@@ -656,7 +689,7 @@ class AravisCamera(Camera):
             image = convert_image(data, self.pixel_format, width, height, padding)
             self._delivered += 1
             yield Frame(index=index, timestamp=stamp_ns / 1e9, exposure_s=self._exposure_s,
-                        image=image)
+                        image=image, bits=significant_bits(self.pixel_format))
 
     def _control_answers(self) -> bool:
         """Read a register with a deadline of ``probe_timeout_s``.
@@ -695,6 +728,7 @@ class AravisCamera(Camera):
         out: dict[str, float] = {"delivered": float(self._delivered),
                                  "bad_buffers": float(self._bad_buffers),
                                  "dropped_in_driver": float(self._dropped_in_driver),
+                                 "discarded_at_stop": float(self._discarded_at_stop),
                                  "buffers": float(self.pool_size)}
         if stream is None:
             return out

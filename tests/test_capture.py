@@ -25,7 +25,7 @@ RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"
 SIM_SIZE = (512, 512)
 
 
-def rrd_frames(path: Path, entity: str = "/camera/depth") -> set[int]:
+def rrd_frames(path: Path, entity: str = "/world/camera/depth") -> set[int]:
     frames: set[int] = set()
     for chunk in RrdReader(path).stream():
         if chunk.entity_path == entity:
