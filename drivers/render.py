@@ -248,6 +248,66 @@ def _line_light(foot, u, sigma):
     return total
 
 
+@nb.njit(cache=True)
+def _pixel_mc(
+    i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
+    t0, exposure, k0, samples, offsets,
+):  # fmt: skip
+    """Stratified Monte Carlo mean radiance (3 channels) of pixel ``(i, j)`` over the exposure.
+
+    Uses the ``samples`` rows ``k0 ..`` of ``offsets`` for the pixel area and
+    stratifies time over ``t0 .. t0 + exposure`` with them.
+    """
+    n_pat = pat_proj.shape[0]
+    n_proj = projs.shape[0]
+    acc0 = 0.0
+    acc1 = 0.0
+    acc2 = 0.0
+    # Cranley-Patterson rotation: every pixel gets its own phase of the
+    # stratified pattern, so no sampling error is shared by all pixels
+    h1 = ((i * 73856093) ^ (j * 19349663)) & 0xFFFFFF
+    ph_t = (h1 % 4093) / 4093.0
+    ph_x = ((h1 // 4093) % 61) / 61.0
+    ph_y = ((h1 // 249673) % 67) / 67.0
+    for kk in range(samples):
+        k = k0 + kk
+        t = t0 + exposure * (((kk + 0.5) / samples + ph_t) % 1.0)
+        ox = ((offsets[k, 1] + 0.5 + ph_x) % 1.0) - 0.5
+        oy = ((offsets[k, 2] + 0.5 + ph_y) % 1.0) - 0.5
+        dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
+        dy = rays[i, j, 1] + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
+        dz = 1.0
+        s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, dz, t, tex, np.inf)
+        if pi < 0:
+            continue
+        X = s * dx
+        Y = s * dy
+        Z = s * dz
+        # face the normal towards the camera
+        if nx * X + ny * Y + nz * Z > 0:
+            nx, ny, nz = -nx, -ny, -nz
+        acc0 += alb * ambient[0]
+        acc1 += alb * ambient[1]
+        acc2 += alb * ambient[2]
+        for q in range(n_proj):
+            u, cosi, dist2 = _lit_by(
+                prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
+            )
+            if cosi <= 0.0:
+                continue
+            irr = alb * proj_power[q] * cosi / dist2
+            for m in range(n_pat):
+                if pat_proj[m] != q:
+                    continue
+                light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * irr
+                c = pat_channel[m]
+                acc0 += crosstalk[0, c] * light
+                acc1 += crosstalk[1, c] * light
+                acc2 += crosstalk[2, c] * light
+    return acc0 / samples, acc1 / samples, acc2 / samples
+
+
 @nb.njit(cache=True, parallel=True)
 def render_exposure(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
@@ -256,63 +316,345 @@ def render_exposure(
 ):  # fmt: skip
     """Integrate radiance over the exposure for every pixel into ``out`` (h, w, 3).
 
-    ``rays``: (h, w, 3) camera rays (z = 1) at pixel centres; ``ray_dx``/``ray_dy``
-    their change per pixel (for sub-pixel samples).  ``offsets``: (samples, 3)
-    stratified (time fraction, dx, dy).  ``pat_foot``: (n_pat, max_lines, 2)
-    line footprints padded, ``pat_nfoot`` the counts.
+    The slow reference form: ``samples`` stratified samples of time and pixel
+    area for every pixel.  ``rays``: (h, w, 3) camera rays (z = 1) at pixel
+    centres; ``ray_dx``/``ray_dy`` their change per pixel (for sub-pixel
+    samples).  ``offsets``: (samples, 3) stratified (time fraction, dx, dy).
+    ``pat_foot``: (n_pat, max_lines, 2) line footprints padded, ``pat_nfoot``
+    the counts.
     """
     h, w = rays.shape[:2]
-    n_pat = pat_proj.shape[0]
-    n_proj = projs.shape[0]
     for i in nb.prange(h):
-        foot_buf = pat_foot  # noqa: F841 (keeps numba from copying)
         for j in range(w):
-            acc0 = 0.0
-            acc1 = 0.0
-            acc2 = 0.0
-            # Cranley-Patterson rotation: every pixel gets its own phase of the
-            # stratified pattern, so no sampling error is shared by all pixels
-            h1 = ((i * 73856093) ^ (j * 19349663)) & 0xFFFFFF
-            ph_t = (h1 % 4093) / 4093.0
-            ph_x = ((h1 // 4093) % 61) / 61.0
-            ph_y = ((h1 // 249673) % 67) / 67.0
-            for k in range(samples):
-                t = t0 + exposure * ((offsets[k, 0] + ph_t) % 1.0)
-                ox = ((offsets[k, 1] + 0.5 + ph_x) % 1.0) - 0.5
-                oy = ((offsets[k, 2] + 0.5 + ph_y) % 1.0) - 0.5
-                dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
-                dy = rays[i, j, 1] + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
-                dz = 1.0
-                s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, dz, t, tex, np.inf)
-                if pi < 0:
-                    continue
-                X = s * dx
-                Y = s * dy
-                Z = s * dz
-                # face the normal towards the camera
-                if nx * X + ny * Y + nz * Z > 0:
-                    nx, ny, nz = -nx, -ny, -nz
-                acc0 += alb * ambient[0]
-                acc1 += alb * ambient[1]
-                acc2 += alb * ambient[2]
-                for q in range(n_proj):
-                    u, cosi, dist2 = _lit_by(
-                        prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
-                    )
-                    if cosi <= 0.0:
-                        continue
-                    irr = alb * proj_power[q] * cosi / dist2
-                    for m in range(n_pat):
-                        if pat_proj[m] != q:
-                            continue
-                        light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * irr
-                        c = pat_channel[m]
-                        acc0 += crosstalk[0, c] * light
-                        acc1 += crosstalk[1, c] * light
-                        acc2 += crosstalk[2, c] * light
-            out[i, j, 0] = acc0 / samples
-            out[i, j, 1] = acc1 / samples
-            out[i, j, 2] = acc2 / samples
+            a0, a1, a2 = _pixel_mc(
+                i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
+                proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk,
+                ambient, t0, exposure, 0, samples, offsets,
+            )  # fmt: skip
+            out[i, j, 0] = a0
+            out[i, j, 1] = a1
+            out[i, j, 2] = a2
+
+
+# ---------------------------------------------------------------------------
+# Fast form: exact integration of the line light over a pixel x exposure box
+#
+# The exposure is cut into KNOTS - 1 segments.  Where the surface seen by a
+# pixel and its 3x3 neighbours is one lit primitive at both knots of a
+# segment, the projector column u is taken affine in the pixel offset (x, y)
+# and linear in time over the segment, and the line light (a box convolved
+# with a Gaussian, i.e. a difference of erfs) is integrated exactly over that
+# pixel x time box with the n-th antiderivatives of erf.  Only the segments
+# where that fails (object edges, shadow edges, texture, a surface that
+# appears or leaves) are sampled by the Monte Carlo form above, with their
+# share of the samples.
+# ---------------------------------------------------------------------------
+
+KNOTS = 3  # exposure start, middle and end: two segments
+# widths (projector px) below this are integrated by their midpoint; the error
+# is about (k w)^2 / 24 of the light, < 1e-4
+MIN_WIDTH = 0.02
+_SQRT_PI = math.sqrt(math.pi)
+
+
+@nb.njit(cache=True, inline="always")
+def _erf_antiderivative(n, x):
+    """The n-th antiderivative of erf (n = 0..3), zero constants chosen so F_n' = F_{n-1}."""
+    e = math.erf(x)
+    if n == 0:
+        return e
+    g = math.exp(-x * x) / _SQRT_PI
+    if n == 1:
+        return x * e + g
+    if n == 2:
+        return (2.0 * x * x + 1.0) * e / 4.0 + 0.5 * x * g
+    return (2.0 * x * x * x + 3.0 * x) * e / 12.0 + (x * x + 1.0) * g / 6.0
+
+
+@nb.njit(cache=True)
+def box_erf_mean(k, lo, w, n):
+    """Mean of ``erf(k u)`` for ``u = lo + sum_i w[i] s_i`` over the unit cube of ``s``.
+
+    Parameters
+    ----------
+    k : float
+        Scale of the erf argument.
+    lo : float
+        ``u`` at the cube's origin.
+    w : numpy.ndarray
+        Widths (signed, not too small: the result divides by their product).
+    n : int
+        How many of ``w`` to use (0 .. 3).
+
+    Returns
+    -------
+    float
+        The exact mean, from the n-th antiderivative of erf at the cube's corners.
+    """
+    total = 0.0
+    for corner in range(1 << n):
+        x = lo
+        sign = 1.0
+        for d in range(n):
+            if (corner >> d) & 1:
+                x += w[d]
+            else:
+                sign = -sign
+        total += sign * _erf_antiderivative(n, k * x)
+    den = 1.0
+    for d in range(n):
+        den *= k * w[d]
+    return total / den
+
+
+@nb.njit(cache=True)
+def _line_light_box(foot, u0, w3, sigma, wbuf):
+    """Mean light of a line set over u = u0 + sum_i w3[i] (s_i - 1/2), s in the unit cube."""
+    n = 0
+    lo = u0
+    span = 0.0
+    for d in range(3):
+        wd = w3[d]
+        if abs(wd) >= MIN_WIDTH:
+            wbuf[n] = wd
+            n += 1
+            lo -= 0.5 * wd
+            span += abs(wd)
+    umin = u0 - 0.5 * span
+    umax = u0 + 0.5 * span
+    nf = foot.shape[0]
+    reach = umin - 4.0 * sigma - 1.0
+    a = 0
+    b = nf
+    while a < b:
+        mid = (a + b) // 2
+        if foot[mid, 1] < reach:
+            a = mid + 1
+        else:
+            b = mid
+    k = 1.0 / (math.sqrt(2.0) * sigma)
+    total = 0.0
+    for i in range(a, nf):
+        if foot[i, 0] > umax + 4.0 * sigma + 1.0:
+            break
+        total += 0.5 * (
+            box_erf_mean(k, lo - foot[i, 0], wbuf, n) - box_erf_mean(k, lo - foot[i, 1], wbuf, n)
+        )
+    return total
+
+
+@nb.njit(cache=True)
+def _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy, t, st):
+    """Fill ``st`` = (signature, albedo, u_0, irr_0, u_1, irr_1, ...) of the ray at time t.
+
+    The signature is -1 for no surface, else primitive index * 16 + lit bits,
+    so equal signatures mean the same primitive lit by the same projectors.
+    """
+    s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, 1.0, t, tex, np.inf)
+    n_proj = projs.shape[0]
+    if pi < 0:
+        st[0] = -1.0
+        st[1] = 0.0
+        for q in range(n_proj):
+            st[2 + 2 * q] = 0.0
+            st[3 + 2 * q] = 0.0
+        return
+    X = s * dx
+    Y = s * dy
+    Z = s
+    if nx * X + ny * Y + nz * Z > 0:
+        nx, ny, nz = -nx, -ny, -nz
+    bits = 0
+    for q in range(n_proj):
+        u, cosi, dist2 = _lit_by(
+            prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
+        )
+        if cosi > 0.0:
+            bits |= 1 << q
+            st[2 + 2 * q] = u
+            st[3 + 2 * q] = alb * proj_power[q] * cosi / dist2
+        else:
+            st[2 + 2 * q] = 0.0
+            st[3 + 2 * q] = 0.0
+    st[0] = pi * 16.0 + bits
+    st[1] = alb
+
+
+@nb.njit(cache=True, parallel=True)
+def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, times, r0, states):
+    """States (see :func:`_point_state`) of the pixel-centre rays of rows ``r0 ..`` at ``times``.
+
+    ``states``: (rows, w, len(times), 2 + 2 n_proj), filled for image rows
+    ``r0 .. r0 + rows`` (clipped to the image; rows outside are left alone).
+    """
+    h, w = rays.shape[:2]
+    rows = states.shape[0]
+    for ii in nb.prange(rows):
+        i = r0 + ii
+        if i < 0 or i >= h:
+            continue
+        nk = times.shape[0]
+        for j in range(w):
+            dx = rays[i, j, 0]
+            dy = rays[i, j, 1]
+            st = states[ii, j]
+            _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
+                         times[0], st[0])  # fmt: skip
+            _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
+                         times[nk - 1], st[nk - 1])  # fmt: skip
+            same = True
+            for f in range(st.shape[1]):
+                if st[0, f] != st[nk - 1, f]:
+                    same = False
+                    break
+            for kk in range(1, nk - 1):
+                if same:
+                    # nothing seen by this ray changed between start and end: a
+                    # static surface (nothing in these scenes crosses a pixel
+                    # entirely within one exposure)
+                    st[kk, :] = st[0, :]
+                else:
+                    _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx,
+                                 dy, times[kk], st[kk])  # fmt: skip
+
+
+@nb.njit(cache=True)
+def _segment_exact(
+    states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
+    crosstalk, ambient, n_proj, w3, wbuf, acc,
+):  # fmt: skip
+    """Add ``weight`` x the exact mean light of pixel (ii, j) between knots ka and kb to ``acc``."""
+    n_pat = pat_proj.shape[0]
+    sa = states[ii, j, ka]
+    sb = states[ii, j, kb]
+    if sa[0] < 0:
+        return  # nothing there
+    alb = sa[1]
+    acc[0] += weight * alb * ambient[0]
+    acc[1] += weight * alb * ambient[1]
+    acc[2] += weight * alb * ambient[2]
+    for q in range(n_proj):
+        cu = 2 + 2 * q
+        if sa[cu + 1] <= 0.0:
+            continue  # not lit by this projector (the same at both knots)
+        # u across the pixel from the neighbours (same smooth surface)
+        bx = 0.25 * (
+            states[ii, j + 1, ka, cu] - states[ii, j - 1, ka, cu]
+            + states[ii, j + 1, kb, cu] - states[ii, j - 1, kb, cu]
+        )  # fmt: skip
+        by = 0.25 * (
+            states[ii + 1, j, ka, cu] - states[ii - 1, j, ka, cu]
+            + states[ii + 1, j, kb, cu] - states[ii - 1, j, kb, cu]
+        )  # fmt: skip
+        w3[0] = sb[cu] - sa[cu]
+        w3[1] = bx
+        w3[2] = by
+        u0 = 0.5 * (sa[cu] + sb[cu])
+        irr = weight * 0.5 * (sa[cu + 1] + sb[cu + 1])
+        for m in range(n_pat):
+            if pat_proj[m] != q:
+                continue
+            light = irr * _line_light_box(pat_foot[m, : pat_nfoot[m]], u0, w3, defocus[q], wbuf)
+            c = pat_channel[m]
+            acc[0] += crosstalk[0, c] * light
+            acc[1] += crosstalk[1, c] * light
+            acc[2] += crosstalk[2, c] * light
+
+
+@nb.njit(cache=True, parallel=True)
+def render_exposure_fast(
+    rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
+    t0, exposure, samples, offsets, states, r0, row_lo, row_hi, out, mc_count,
+):  # fmt: skip
+    """Fast form of :func:`render_exposure` for image rows ``row_lo .. row_hi``.
+
+    ``states`` come from :func:`knot_states` at the exposure's start, middle
+    and end for rows ``r0 .. r0 + len(states)``, which must include one row
+    above and below the band.  Smooth segments are integrated exactly (see the
+    section comment); the others use :func:`_pixel_mc` with their share of
+    ``samples``.  ``mc_count[i]`` receives the number of pixels of row i that
+    needed any Monte Carlo samples.
+    """
+    h, w = rays.shape[:2]
+    n_proj = projs.shape[0]
+    last = KNOTS - 1
+    seg_samples = max(samples // last, 4)
+    for i in nb.prange(row_lo, row_hi):
+        wbuf = np.empty(3)
+        w3 = np.empty(3)
+        acc = np.empty(3)
+        ii = i - r0
+        n_mc = 0
+        for j in range(w):
+            if not (0 < i < h - 1 and 0 < j < w - 1):
+                a0, a1, a2 = _pixel_mc(
+                    i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
+                    proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
+                    crosstalk, ambient, t0, exposure, 0, samples, offsets,
+                )  # fmt: skip
+                out[i, j, 0] = a0
+                out[i, j, 1] = a1
+                out[i, j, 2] = a2
+                n_mc += 1
+                continue
+            st = states[ii, j]
+            # smooth at a knot: the 3x3 neighbourhood sees one primitive, lit alike
+            smooth_k = 0
+            for kk in range(KNOTS):
+                ok = True
+                sig = st[kk, 0]
+                alb = st[kk, 1]
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        if (
+                            states[ii + di, j + dj, kk, 0] != sig
+                            or abs(states[ii + di, j + dj, kk, 1] - alb) > 1e-9
+                        ):
+                            ok = False
+                if ok:
+                    smooth_k |= 1 << kk
+            static = True
+            for kk in range(1, KNOTS):
+                for f in range(st.shape[1]):
+                    if st[kk, f] != st[0, f]:
+                        static = False
+            acc[:] = 0.0
+            if static and smooth_k == (1 << KNOTS) - 1:
+                # nothing changes during the exposure: one segment
+                _segment_exact(
+                    states, ii, j, 0, last, 1.0, pat_proj, pat_channel, pat_foot, pat_nfoot,
+                    defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
+                )  # fmt: skip
+            else:
+                mc_here = False
+                for seg in range(last):
+                    if (smooth_k >> seg) & 3 == 3:
+                        _segment_exact(
+                            states, ii, j, seg, seg + 1, 1.0 / last, pat_proj, pat_channel,
+                            pat_foot, pat_nfoot, defocus, crosstalk, ambient, n_proj, w3,
+                            wbuf, acc,
+                        )  # fmt: skip
+                    else:
+                        # an edge, shadow edge or texture inside this segment
+                        a0, a1, a2 = _pixel_mc(
+                            i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre,
+                            proj_size, proj_power, pat_proj, pat_channel, pat_foot,
+                            pat_nfoot, defocus, crosstalk, ambient,
+                            t0 + exposure * seg / last, exposure / last,
+                            (seg * seg_samples) % max(samples - seg_samples + 1, 1),
+                            seg_samples, offsets,
+                        )  # fmt: skip
+                        acc[0] += a0 / last
+                        acc[1] += a1 / last
+                        acc[2] += a2 / last
+                        mc_here = True
+                if mc_here:
+                    n_mc += 1
+            out[i, j, 0] = acc[0]
+            out[i, j, 1] = acc[1]
+            out[i, j, 2] = acc[2]
+        mc_count[i] = n_mc
 
 
 @nb.njit(cache=True, parallel=True)

@@ -121,6 +121,13 @@ def _thrown(t):
     return _throws(t, [(2, (-0.06, -0.05, 0.68), (0.15, -0.4, 0.6), 0.1)])
 
 
+def _ball_wall(t):
+    # the thrown ball in front of a static wall: the wall's lines do not move,
+    # so their bands are rejected, while the ball's blurred bands give depth
+    wall = _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.1)), n=(7, (0, 0, -1)))
+    return np.concatenate([np.stack([wall]), _thrown(t)])
+
+
 def _two_balls(t):
     return _throws(t, [
         (2, (-0.12, -0.04, 0.7), (0.1, -0.4, 0.55), 0.085),
@@ -160,6 +167,8 @@ SCENES: dict[str, Scene] = {
         Scene("tilted-board", "board tilted 30 deg moving diagonally", 0.02, True, 1.0),
         Scene("ball", "a thrown ball, 0.68-0.85 m", 0.02, False, THROW_PERIOD),
         Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
+        Scene("ball-wall", "a thrown ball in front of a static wall at 1.1 m", 0.02, False,
+              THROW_PERIOD),
         Scene("two-balls", "two balls thrown in opposite depth directions", 0.02, False,
               THROW_PERIOD),
     )
@@ -171,6 +180,7 @@ _BUILDERS = {
     "tilted-board": _tilted,
     "ball": _thrown,
     "fan": _fan,
+    "ball-wall": _ball_wall,
     "two-balls": _two_balls,
 }
 

@@ -21,7 +21,14 @@ from lightflow.app.patterns import line_footprints
 from lightflow.app.rig import CHANNEL_INDEX, Rig
 
 from .base import Camera, Frame
-from .render import render_exposure, render_truth, stratified_offsets
+from .render import (
+    KNOTS,
+    knot_states,
+    render_exposure,
+    render_exposure_fast,
+    render_truth,
+    stratified_offsets,
+)
 from .scenes import Scene, get_scene, newspaper_texture
 
 #: a static white surface facing the projector at this distance reaches WHITE_DN
@@ -130,23 +137,62 @@ class SceneRenderer:
             [WHITE_DN * float(np.sum((c - target) ** 2)) for c in self.proj_centre]
         )
         self.offsets = stratified_offsets(sensor.samples)
+        #: fraction of pixels the last :meth:`radiance` sampled by Monte Carlo
+        self.last_mc_fraction = 0.0
 
-    def radiance(self, t0: float, exposure_s: float) -> np.ndarray:
-        """Noise-free mean image (float DN) of the exposure starting at ``t0``."""
+    #: image rows per band of the fast form (bounds the memory of the knot states)
+    BAND_ROWS = 96
+
+    def radiance(self, t0: float, exposure_s: float, exact: bool = False) -> np.ndarray:
+        """Noise-free mean image (float DN) of the exposure starting at ``t0``.
+
+        Parameters
+        ----------
+        t0, exposure_s : float
+            Exposure start and duration in seconds.
+        exact : bool
+            Use the slow reference form (``samples`` Monte Carlo samples of
+            time and pixel area at every pixel) instead of the fast form, which
+            integrates smooth pixels exactly and samples only the others.
+        """
         cam = self.rig.camera
         out = np.zeros((cam.height, cam.width, 3))
         prims = self.scene.primitives(t0 + exposure_s / 2)
         # brightness scales with exposure relative to the scene's nominal exposure
         gain = exposure_s / self.scene.exposure_s
         s = self.sensor
-        render_exposure(
-            self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-            self.proj_centre, self.proj_size, self.proj_power * gain, self.pat_proj,
-            self.pat_channel, self.pat_foot, self.pat_nfoot,
-            np.full(len(self.rig.projectors), s.projector_defocus_px),
-            np.array(s.crosstalk), np.full(3, s.ambient_dn * gain), t0, exposure_s,
-            s.samples, self.offsets, out,
-        )  # fmt: skip
+        power = self.proj_power * gain
+        defocus = np.full(len(self.rig.projectors), s.projector_defocus_px)
+        crosstalk = np.array(s.crosstalk)
+        ambient = np.full(3, s.ambient_dn * gain)
+        if exact:
+            render_exposure(
+                self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+                self.proj_centre, self.proj_size, power, self.pat_proj,
+                self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
+                ambient, t0, exposure_s, s.samples, self.offsets, out,
+            )  # fmt: skip
+            self.last_mc_fraction = 1.0
+        else:
+            times = t0 + exposure_s * np.linspace(0.0, 1.0, KNOTS)
+            n_fields = 2 + 2 * len(self.rig.projectors)
+            mc = np.zeros(cam.height, dtype=np.int64)
+            for lo in range(0, cam.height, self.BAND_ROWS):
+                hi = min(lo + self.BAND_ROWS, cam.height)
+                # one row of halo each side: smoothness looks at the 3x3 neighbours
+                states = np.zeros((hi - lo + 2, cam.width, KNOTS, n_fields))
+                knot_states(
+                    self.rays, prims, self.texture, self.projs, self.proj_centre,
+                    self.proj_size, power, times, lo - 1, states,
+                )  # fmt: skip
+                render_exposure_fast(
+                    self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+                    self.proj_centre, self.proj_size, power, self.pat_proj,
+                    self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
+                    ambient, t0, exposure_s, s.samples, self.offsets, states, lo - 1,
+                    lo, hi, out, mc,
+                )  # fmt: skip
+            self.last_mc_fraction = float(mc.sum()) / (cam.width * cam.height)
         if s.lens_blur_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), s.lens_blur_px)
         return out
