@@ -27,6 +27,14 @@ CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
 PATTERN_KINDS = ("uniform", "exp2", "exp2-reversed")
 #: OpenCV accepts 4, 5, 8, 12 or 14 distortion coefficients; 14 adds a tilted sensor.
 DIST_LENGTHS = (4, 5, 8, 12, 14)
+#: largest camera or projector side accepted, in pixels: larger sizes are typing
+#: errors, and taken at face value they make per-pixel maps of terabytes
+MAX_SIDE_PX = 16384
+#: a real lens moves an image point by less than this factor of its distance to
+#: the principal point; beyond it the coefficients are not a lens (e.g. 1e6)
+MAX_DISTORTION_SCALE = 4.0
+#: files larger than this are not rigs, recordings or sessions
+MAX_JSON_BYTES = 64 * 2**20
 
 
 @dataclass(frozen=True)
@@ -160,6 +168,28 @@ class Rig:
 # ----------------------------------------------------------------------------- parsing
 
 
+def show(value: Any) -> str:
+    """A short one-line rendering of a JSON value for error messages."""
+    if isinstance(value, dict):
+        return "an object"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    if isinstance(value, str):
+        if len(value) <= 60:
+            return json.dumps(value)
+        return f"{json.dumps(value[:40])}... ({len(value)} characters)"
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**15:
+        return f"an integer of {len(str(abs(value)))} digits"
+    return json.dumps(value)
+
+
+def _numbers_only(value: Any, depth: int) -> bool:
+    """True when ``value`` is nested lists ``depth`` deep of JSON numbers (not strings)."""
+    if depth == 0:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, list) and all(_numbers_only(v, depth - 1) for v in value)
+
+
 class _Reader:
     """Strict reader that names ``file: field`` in every error."""
 
@@ -183,8 +213,8 @@ class _Reader:
 
     def number(self, value: Any, where: str, positive: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(where, f"expected a number, got {json.dumps(value)}")
-        if not math.isfinite(value):
+            raise self.fail(where, f"expected a number, got {show(value)}")
+        if isinstance(value, int) and abs(value) > 1e300 or not math.isfinite(value):
             raise self.fail(where, "expected a finite number")
         if positive and value <= 0:
             raise self.fail(where, f"expected a positive number, got {value}")
@@ -192,17 +222,20 @@ class _Reader:
 
     def integer(self, value: Any, where: str, minimum: int = 1) -> int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(where, f"expected an integer, got {json.dumps(value)}")
+            raise self.fail(where, f"expected an integer, got {show(value)}")
         if value < minimum:
             raise self.fail(where, f"expected an integer >= {minimum}, got {value}")
         return value
 
     def matrix(self, value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
         expected = "x".join(map(str, shape))
+        # numpy would turn "1.5" into 1.5: strings for numbers are off-contract
+        if not _numbers_only(value, len(shape)):
+            raise self.fail(where, f"expected a {expected} matrix of numbers, got {show(value)}")
         try:
             arr = np.array(value, dtype=float)
-        except (TypeError, ValueError):
-            raise self.fail(where, f"expected a {expected} matrix of numbers") from None
+        except (TypeError, ValueError, OverflowError):
+            raise self.fail(where, f"expected a {expected} matrix of finite numbers") from None
         if arr.shape != shape:
             got = "x".join(map(str, arr.shape)) if arr.ndim else "a scalar"
             raise self.fail(where, f"expected a {expected} matrix, got {got}")
@@ -212,15 +245,18 @@ class _Reader:
 
     def string(self, value: Any, where: str, choices: tuple[str, ...] | None = None) -> str:
         if not isinstance(value, str):
-            raise self.fail(where, f"expected a string, got {json.dumps(value)}")
+            raise self.fail(where, f"expected a string, got {show(value)}")
         if choices is not None and value not in choices:
-            raise self.fail(where, f"expected one of {', '.join(choices)}, got {value!r}")
+            raise self.fail(where, f"expected one of {', '.join(choices)}, got {show(value)}")
         return value
 
 
 def _parse_intrinsics(rd: _Reader, d: dict, where: str):
     width = rd.integer(d["width"], f"{where}.width")
     height = rd.integer(d["height"], f"{where}.height")
+    for key, value in (("width", width), ("height", height)):
+        if value > MAX_SIDE_PX:
+            raise rd.fail(f"{where}.{key}", f"expected at most {MAX_SIDE_PX} px, got {value}")
     K = rd.matrix(d["K"], f"{where}.K", (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]):
         raise rd.fail(
@@ -231,7 +267,63 @@ def _parse_intrinsics(rd: _Reader, d: dict, where: str):
         n = len(dist_raw) if isinstance(dist_raw, list) else "not a list"
         raise rd.fail(f"{where}.dist", f"expected 5 coefficients (k1, k2, p1, p2, k3), got {n}")
     dist = rd.matrix(dist_raw, f"{where}.dist", (len(dist_raw),))
+    problem = distortion_problem(width, height, K, dist)
+    if problem:
+        raise rd.fail(f"{where}.dist", problem)
     return width, height, K, dist
+
+
+def distortion_problem(width: int, height: int, K: np.ndarray, dist: np.ndarray) -> str:
+    """Why ``dist`` cannot describe a lens of this image, or ``""`` when it can.
+
+    Points are traced from the principal point to the image border (in
+    undistorted normalised coordinates); along each ray the distorted radius
+    must grow (the image must not fold over) and stay within
+    :data:`MAX_DISTORTION_SCALE` of the undistorted one.
+
+    Parameters
+    ----------
+    width, height : int
+        Image size in pixels.
+    K : numpy.ndarray
+        3x3 intrinsics.
+    dist : numpy.ndarray
+        OpenCV distortion coefficients.
+    """
+    if not np.any(dist):
+        return ""
+    import cv2  # only here: rig files are read by tools that never need OpenCV otherwise
+
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1],
+                        [(width - 1) / 2, 0], [(width - 1) / 2, height - 1],
+                        [0, (height - 1) / 2], [width - 1, (height - 1) / 2]], float)
+    centre = K[:2, 2]
+    fx, fy = K[0, 0], K[1, 1]
+    ends = np.stack([(corners[:, 0] - centre[0]) / fx, (corners[:, 1] - centre[1]) / fy], -1)
+    steps = np.linspace(0.02, 1.0, 50)
+    pts = (steps[None, :, None] * ends[:, None, :]).reshape(-1, 3 - 1)
+    obj = np.concatenate([pts, np.ones((len(pts), 1))], axis=1)
+    with np.errstate(all="ignore"):
+        img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+    img = img.reshape(len(ends), len(steps), 2)
+    undist = pts.reshape(len(ends), len(steps), 2) * [fx, fy]
+    r_d = np.hypot(*np.moveaxis(img - centre, -1, 0))
+    r_u = np.hypot(*np.moveaxis(undist, -1, 0))
+    keep = r_u > 1.0  # the first pixel around the principal point says nothing
+    with np.errstate(all="ignore"):
+        ratio = r_d / r_u
+    if not np.all(np.isfinite(r_d)) or np.any(keep & ((ratio > MAX_DISTORTION_SCALE) |
+                                                      (ratio < 1 / MAX_DISTORTION_SCALE))):
+        return (
+            f"coefficients move image points by more than a factor {MAX_DISTORTION_SCALE:g} "
+            f"inside the {width}x{height} image: not a lens model"
+        )
+    if np.any(np.diff(r_d, axis=1)[:, 1:] <= 0):
+        return (
+            f"coefficients fold the {width}x{height} image over (the distorted radius stops "
+            "growing before the border): not a lens model"
+        )
+    return ""
 
 
 def parse_pattern(rd: _Reader, d: Any, where: str, proj_width: int) -> Pattern:
@@ -285,7 +377,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     rd = _Reader(source)
     rd.obj(data, "rig", {"format", "camera", "projectors"})
     if data["format"] != RIG_FORMAT:
-        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {data['format']!r}")
+        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {show(data['format'])}")
     cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"})
     camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"))
     projs = data["projectors"]
@@ -324,17 +416,43 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     return Rig(camera, tuple(projectors), source)
 
 
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a JSON number")
+
+
 def _read_json(path: Path) -> Any:
+    # Any byte sequence must end in one ConfigError line: bad encodings, NaN and
+    # Infinity (not JSON), integers of thousands of digits and nesting deeper than
+    # the parser's recursion limit are all files a user can hand us.
     try:
-        text = path.read_text()
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_JSON_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: expected a JSON file, got a folder") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    if len(raw) > MAX_JSON_BYTES:
+        raise ConfigError(f"{path}: larger than {MAX_JSON_BYTES // 2**20} MiB, not a JSON file")
     try:
-        return json.loads(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte {exc.start}: {raw[exc.start:exc.start + 1]!r}); "
+            "save it as UTF-8"
+        ) from None
+    if text.startswith("\ufeff"):
+        text = text[1:]  # a byte-order mark is UTF-8 all the same
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid JSON: nested too deeply") from None
+    except ValueError as exc:  # NaN/Infinity, or an integer too long to convert
+        msg = str(exc).splitlines()[0] if str(exc) else "bad value"
+        raise ConfigError(f"{path}: not valid JSON: {msg}") from None
 
 
 def load_rig(path: str | Path) -> Rig:
@@ -351,9 +469,15 @@ EXAMPLE_RIGS = ("two-projector", "single-projector", "two-projector-distorted")
 def resolve_rig(spec: str | Path) -> Rig:
     """Load a rig from a file path, or one of the example rigs by name (``two-projector``)."""
     spec = str(spec)
+    if "\0" in spec:
+        raise ConfigError(f"{spec!r}: not a file name (holds a NUL byte)")
     if spec in EXAMPLE_RIGS:
         return load_rig(EXAMPLE_RIGS_DIR / f"{spec}.json")
-    if not Path(spec).exists():
+    try:
+        exists = Path(spec).exists()
+    except OSError as exc:  # e.g. a name longer than the file system allows
+        raise ConfigError(f"{spec[:80]}: cannot read: {exc.strerror}") from None
+    if not exists:
         raise ConfigError(
             f"{spec}: file not found (expected a rig file or an example rig: "
             f"{', '.join(EXAMPLE_RIGS)})"

@@ -96,7 +96,7 @@ def test_replay_unknown_key_is_one_line_exit_2(recording, tmp_path, capsys):
     assert status == 2
     lines = err.strip().splitlines()
     assert lines == [f"lightflow: error: {rec / 'recording.json'}: unknown key 'gain' "
-                     f"(expected only: exposure_s, format, frames, rig)"]  # fmt: skip
+                     f"(expected only: bits, exposure_s, format, frames, rig)"]  # fmt: skip
     assert not (tmp_path / "x.rrd").exists()
 
 

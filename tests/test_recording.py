@@ -136,7 +136,7 @@ def test_unknown_key(rec_dir):
         read_recording(rec_dir)
     assert str(err.value) == (
         f"{rec_dir}/recording.json: unknown key 'fps' "
-        "(expected only: exposure_s, format, frames, rig)"
+        "(expected only: bits, exposure_s, format, frames, rig)"
     )
 
 
@@ -336,7 +336,8 @@ def test_verify_lists_every_problem(rec_dir, capsys):
         f"PROBLEM {rec_dir}/recording.json: frames[2].t: 0 s does not increase "
         "(frames[1].t = 10.0333 s)",
         f"PROBLEM {rec_dir}/frames/000001.png: frame file missing (listed as frames[1])",
-        f"PROBLEM {rec_dir}/frames/000003.png: not a readable image",
+        f"PROBLEM {rec_dir}/frames/000003.png: not a PNG file "
+        "(a recording's frames are PNG images)",
         f"{rec_dir}: 4 frames, 80x60, exposure 20 ms: 3 problems",
     ]
 

@@ -6,15 +6,28 @@ import argparse
 from collections import Counter
 
 from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.recording import Recording, load_frame, read_recording
-from lightflow.app.rig import load_rig
+from lightflow.app.recording import (
+    Recording,
+    load_frame,
+    read_recording,
+    recording_leftovers,
+    repair_recording,
+)
+from lightflow.app.rig import resolve_rig
 
 DESCRIPTION = """\
 Check a recording folder (recording.json + frames/*.png) before replaying it or
 handing it on: recording.json must follow the format exactly (with a valid rig
 and a positive exposure_s), every listed frame must exist, be a readable RGB
-PNG of the camera size (8 or 16 bits per channel), appear once, and the
-timestamps t must increase.
+PNG of the camera size (8 or 16 bits per channel) inside the folder (no
+links out of it), appear once, and the timestamps t must increase.  A
+recording that lists no frames is a problem too, and so are files a crash left
+behind: an unclosed recording (recording.index.jsonl), temporary files and
+frames that recording.json does not list.
+
+--repair, after a crash or kill during `capture --record`, relists every
+complete frame the recording had written and removes partial files; then it
+verifies as usual.  The format is described in docs/formats.md.
 
 Every problem is printed on its own line.  Exit status: 0 when the recording
 is clean, 2 when anything is wrong."""
@@ -22,8 +35,8 @@ is clean, 2 when anything is wrong."""
 EPILOG = """\
 examples:
   lightflow verify rec/                 # exit 0 when clean, 2 with one line per problem
-  lightflow verify rec/ --rig rig.json  # check the frames against another rig's camera size"""
-
+  lightflow verify rec/ --rig rig.json  # check the frames against another rig's camera size
+  lightflow verify rec/ --repair        # after a crash: relist complete frames, drop partial"""
 
 
 def register(subparsers) -> None:
@@ -37,9 +50,14 @@ def register(subparsers) -> None:
     p.add_argument("recording", metavar="REC", help="recording folder (holds recording.json)")
     p.add_argument(
         "--rig",
-        metavar="RIG.json",
-        help="check the frames against this rig's camera instead of the embedded rig",
+        metavar="RIG",
+        help="check the frames against this rig's camera instead of the embedded rig "
+        "(a file or an example rig name such as two-projector)",
     )
+    p.add_argument(
+        "--repair", action="store_true",
+        help="first relist complete frames a crash left unlisted and remove partial files",
+    )  # fmt: skip
     p.set_defaults(func=run)
 
 
@@ -53,6 +71,8 @@ def check_recording(rec: Recording) -> list[str]:
     """
     problems: list[str] = []
     src = rec.json_path
+    if not rec.frames:
+        problems.append(f"{src}: frames: lists no frames (nothing to replay)")
     counts = Counter(e.file for e in rec.frames)
     for file, n in sorted(counts.items()):
         if n > 1:
@@ -69,11 +89,15 @@ def check_recording(rec: Recording) -> list[str]:
             load_frame(rec, i)
         except FrameError as exc:
             problems.append(str(exc))
+    problems.extend(recording_leftovers(rec))
     return problems
 
 
 def run(args: argparse.Namespace) -> int:
-    rig = load_rig(args.rig) if args.rig else None
+    rig = resolve_rig(args.rig) if args.rig else None
+    if args.repair:
+        for line in repair_recording(args.recording):
+            print(f"repaired {line}")
     try:
         rec = read_recording(args.recording, rig)
     except ConfigError as exc:
