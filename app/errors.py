@@ -28,3 +28,7 @@ class DeviceLostError(DriverError):
 
 class CalibrationError(LightflowError):
     """A calibration session cannot be calibrated (names pose, projector, frame)."""
+
+
+class OutputError(LightflowError):
+    """An output (export folder, file, recording) cannot be written, e.g. a full disk."""
