@@ -195,6 +195,19 @@ def _parse_entry(entry: Any, where: str, fail: Callable[[str, str], ConfigError]
     return FrameEntry(file, float(t))
 
 
+def timestamp_problems(rec: Recording) -> list[str]:
+    """One line per frame whose ``t`` does not increase over the previous frame's."""
+    lines = []
+    for i in range(1, len(rec.frames)):
+        prev, cur = rec.frames[i - 1].t, rec.frames[i].t
+        if not cur > prev:
+            lines.append(
+                f"{rec.json_path}: frames[{i}].t: {cur:g} s does not increase "
+                f"(frames[{i - 1}].t = {prev:g} s)"
+            )
+    return lines
+
+
 def frame_path_problem(file: str) -> str:
     """Why ``file`` is not an acceptable frame path of a recording, or ``""``.
 

@@ -12,6 +12,7 @@ from lightflow.app.recording import (
     read_recording,
     recording_leftovers,
     repair_recording,
+    timestamp_problems,
 )
 from lightflow.app.rig import resolve_rig
 
@@ -77,13 +78,7 @@ def check_recording(rec: Recording) -> list[str]:
     for file, n in sorted(counts.items()):
         if n > 1:
             problems.append(f"{src}: frames: {file} is listed {n} times")
-    for i in range(1, len(rec.frames)):
-        prev, cur = rec.frames[i - 1].t, rec.frames[i].t
-        if not cur > prev:
-            problems.append(
-                f"{src}: frames[{i}].t: {cur:g} s does not increase "
-                f"(frames[{i - 1}].t = {prev:g} s)"
-            )
+    problems.extend(timestamp_problems(rec))
     for i in range(len(rec.frames)):
         try:
             load_frame(rec, i)

@@ -1,4 +1,4 @@
-"""Point-cloud export (docs/formats.md section 4): one binary PLY per frame.
+"""Point-cloud export (docs/formats.md section 5): one binary PLY per frame.
 
 Points are in the *world frame* of the PLY files: the camera frame turned
 half a turn about its x axis, so x points right, y up and the scene lies at
