@@ -457,10 +457,11 @@ class RecordingWriter:
 
     Notes
     -----
-    Crash safety: each frame is written to a temporary name, synced and renamed,
-    then appended (and synced) to :data:`INDEX_LOG`; ``recording.json`` is rewritten
-    once per batch.  After a ``kill -9`` every complete frame is either listed in
-    ``recording.json`` or in the log, and :func:`repair_recording` relists it.
+    Crash safety: each frame is written to a temporary name and synced, appended
+    (and synced) to :data:`INDEX_LOG`, then renamed to its final name;
+    ``recording.json`` is rewritten once per batch.  After a ``kill -9`` every
+    complete frame is either listed in ``recording.json`` or in the log, and
+    :func:`repair_recording` relists it.
     The log is removed by :meth:`close`.
     """
 
@@ -623,10 +624,12 @@ class RecordingWriter:
                 fh.flush()
                 # the frame must be on disk before any index may list it
                 os.fdatasync(fh.fileno())
-            os.replace(tmp, path)
+            # logged before the rename: a complete frame under its final name is then
+            # always in the log, and a logged name without its file is simply skipped
             self._index.write((json.dumps(entry) + "\n").encode())
             self._index.flush()
             os.fdatasync(self._index.fileno())
+            os.replace(tmp, path)
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             raise FrameError(f"{path}: cannot write frame: {exc.strerror}") from None
