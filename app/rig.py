@@ -345,7 +345,7 @@ def parse_pattern(rd: _Reader, d: Any, where: str, proj_width: int) -> Pattern:
             raise rd.fail(f"{where}.width_px", f"expected less than half the pitch ({pitch / 2:g})")
         if not 0 <= offset < proj_width:
             raise rd.fail(f"{where}.offset_px", f"expected 0 <= offset_px < {proj_width}")
-        n_lines = math.floor((proj_width - 1e-9 - offset) / pitch) + 1
+        n_lines = math.floor(min((proj_width - 1e-9 - offset) / pitch, 1e9)) + 1
         if n_lines < 3:
             raise rd.fail(
                 f"{where}.pitch_px",
@@ -392,7 +392,9 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
             raise rd.fail(f"{where}.name", "expected a non-empty name without '/'")
         width, height, K, dist = _parse_intrinsics(rd, pd, where)
         R = rd.matrix(pd["R"], f"{where}.R", (3, 3))
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        # a rotation has no entry beyond 1: checking that first keeps R @ R.T finite
+        if (np.abs(R).max() > 1 + 1e-5 or not np.allclose(R @ R.T, np.eye(3), atol=1e-5)
+                or np.linalg.det(R) < 0):  # fmt: skip
             raise rd.fail(f"{where}.R", "expected a rotation matrix (orthonormal, det +1)")
         t = rd.matrix(pd["t"], f"{where}.t", (3,))
         pats = pd["patterns"]
