@@ -38,7 +38,9 @@ def write_complete(path: Path, fill: Callable[[BinaryIO], None]) -> None:
             tmp.unlink(missing_ok=True)
         except OSError:  # noqa: S110 - the write error is the one to report
             pass
-        reason = exc.strerror or str(exc).splitlines()[0]
+        # a short write ("N requested and M written") carries no errno: the disk
+        # filled up or a file size limit was reached
+        reason = exc.strerror or f"disk full or file size limit ({str(exc).splitlines()[0]})"
         raise OutputError(f"{path}: cannot write: {reason}") from None
 
 
