@@ -217,14 +217,14 @@ class _Reader:
         if isinstance(value, int) and abs(value) > 1e300 or not math.isfinite(value):
             raise self.fail(where, "expected a finite number")
         if positive and value <= 0:
-            raise self.fail(where, f"expected a positive number, got {value}")
+            raise self.fail(where, f"expected a positive number, got {show(value)}")
         return float(value)
 
     def integer(self, value: Any, where: str, minimum: int = 1) -> int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(where, f"expected an integer, got {show(value)}")
         if value < minimum:
-            raise self.fail(where, f"expected an integer >= {minimum}, got {value}")
+            raise self.fail(where, f"expected an integer >= {minimum}, got {show(value)}")
         return value
 
     def matrix(self, value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
@@ -256,7 +256,7 @@ def _parse_intrinsics(rd: _Reader, d: dict, where: str):
     height = rd.integer(d["height"], f"{where}.height")
     for key, value in (("width", width), ("height", height)):
         if value > MAX_SIDE_PX:
-            raise rd.fail(f"{where}.{key}", f"expected at most {MAX_SIDE_PX} px, got {value}")
+            raise rd.fail(f"{where}.{key}", f"expected at most {MAX_SIDE_PX} px, got {show(value)}")
     K = rd.matrix(d["K"], f"{where}.K", (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]):
         raise rd.fail(
