@@ -28,20 +28,21 @@ import cv2
 import numpy as np
 
 from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.rig import Rig, read_json, rig_from_dict, show
+from lightflow.app.rig import Rig, read_json, rig_from_dict, short_json
 from lightflow.drivers.base import Frame
 
 RECORDING_FORMAT = "lightflow-recording/1"
 RECORDING_JSON = "recording.json"
 FRAMES_DIR = "frames"
-#: append-only log of the frames written so far (one JSON line each), kept while a
-#: recording is open: after a crash it lists what recording.json had not caught up with
-INDEX_LOG = "recording.index.jsonl"
-_KEYS = ("format", "rig", "exposure_s", "frames")
-_OPTIONAL_KEYS = ("bits",)
+#: append-only list of written frames (one JSON object per line), so that a
+#: crash loses no frame that reached the disk; see :func:`repair_recording`
+INDEX_FILE = "frames.index"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: longest frame path accepted (file systems allow 255 bytes per name)
-MAX_FRAME_NAME = 255
+#: longest frame file name accepted (file systems allow 255 bytes)
+MAX_NAME_BYTES = 200
+_KEYS = ("format", "rig", "exposure_s", "frames")
+#: optional keys of recording.json
+_OPTIONAL_KEYS = ("bits",)
 
 #: PNG settings of the writer.  Measured on 2 cores with a 1600x1200 RGB image of
 #: noise plus line patterns (cv2.imencode, one thread):
@@ -83,10 +84,9 @@ class Recording:
         Exposure length of every frame.
     frames : tuple of FrameEntry
         The frames in file order.
-    bits : int or None
-        Significant bits per sample (``bits`` field): a 12-bit camera's frames are
-        16-bit PNGs holding 0..4095.  None when the recording does not say: full
-        scale is then the PNG's (255 or 65535).
+    bits : int, optional
+        Significant bits of the camera's samples (16-bit PNGs of a 12-bit
+        camera hold 0..4095); None: the PNG's full range.
     """
 
     root: Path
@@ -141,32 +141,32 @@ def read_recording(path: str | Path, rig: Rig | None = None) -> Recording:
         raise ConfigError(f"{src}: expected a JSON object, got {type(data).__name__}")
     unknown = sorted(set(data) - set(_KEYS) - set(_OPTIONAL_KEYS))
     if unknown:
-        allowed = ", ".join(sorted(_KEYS + _OPTIONAL_KEYS))
-        raise ConfigError(f"{src}: unknown key {unknown[0][:40]!r} (expected only: {allowed})")
+        raise ConfigError(
+            f"{src}: unknown key {unknown[0]!r} (expected only: {', '.join(sorted(_KEYS))}; "
+            f"optional: {', '.join(_OPTIONAL_KEYS)})"
+        )
+    bits = data.get("bits")
+    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)
+                             or not 8 <= bits <= 16):
+        raise fail("bits", f"expected the camera's significant bits, 8 to 16, got "
+                   f"{short_json(bits)}")
     missing = [k for k in _KEYS if k not in data]
     if missing:
         raise ConfigError(f"{src}: missing key {missing[0]!r}")
     if data["format"] != RECORDING_FORMAT:
-        raise fail("format", f"expected {RECORDING_FORMAT!r}, got {show(data['format'])}")
+        raise fail("format", f"expected {RECORDING_FORMAT!r}, got {short_json(data['format'])}")
     embedded = rig_from_dict(data["rig"], f"{src}: rig")
     exposure = data["exposure_s"]
     if isinstance(exposure, bool) or not isinstance(exposure, (int, float)):
-        raise fail("exposure_s", f"expected a number of seconds, got {show(exposure)}")
-    if isinstance(exposure, int) and exposure > 1e300 or not math.isfinite(exposure) \
-            or exposure <= 0:
-        raise fail("exposure_s", f"expected a positive number of seconds, got {show(exposure)}")
-    bits = data.get("bits")
-    if bits is not None and (
-        isinstance(bits, bool) or not isinstance(bits, int) or not 1 <= bits <= 16
-    ):
-        raise fail("bits", f"expected an integer 1..16 (significant bits), got {show(bits)}")
+        raise fail("exposure_s", f"expected a number of seconds, got {short_json(exposure)}")
+    if not math.isfinite(exposure) or exposure <= 0:
+        raise fail("exposure_s", f"expected a positive number of seconds, got {exposure}")
     frames_raw = data["frames"]
     if not isinstance(frames_raw, list):
         raise fail("frames", f"expected a list, got {type(frames_raw).__name__}")
     frames = tuple(_parse_entry(e, f"frames[{i}]", fail) for i, e in enumerate(frames_raw))
     seen: dict[str, int] = {}
     for i, entry in enumerate(frames):
-        # the same file twice would be replayed (and counted) twice
         if entry.file in seen:
             raise fail(f"frames[{i}].file", f"{entry.file} is already frames[{seen[entry.file]}]")
         seen[entry.file] = i
@@ -175,24 +175,70 @@ def read_recording(path: str | Path, rig: Rig | None = None) -> Recording:
 
 def _parse_entry(entry: Any, where: str, fail: Callable[[str, str], ConfigError]) -> FrameEntry:
     if not isinstance(entry, dict):
-        raise fail(where, f"expected an object with file and t, got {show(entry)}")
+        raise fail(where, f"expected an object with file and t, got {short_json(entry)}")
     unknown = sorted(set(entry) - {"file", "t"})
     if unknown:
-        raise fail(where, f"unknown key {unknown[0][:40]!r} (expected only: file, t)")
+        raise fail(where, f"unknown key {unknown[0]!r} (expected only: file, t)")
     for key in ("file", "t"):
         if key not in entry:
             raise fail(where, f"missing key {key!r}")
     file, t = entry["file"], entry["t"]
     if not isinstance(file, str) or not file:
-        raise fail(f"{where}.file", f"expected a relative path, got {show(file)}")
-    problem = frame_path_problem(file)
-    if problem:
-        raise fail(f"{where}.file", f"{problem}, got {show(file)}")
-    if isinstance(t, bool) or not isinstance(t, (int, float)) or (
-        isinstance(t, int) and abs(t) > 1e300 or not math.isfinite(t)
-    ):
-        raise fail(f"{where}.t", f"expected a number of seconds, got {show(t)}")
+        raise fail(f"{where}.file", f"expected a relative path, got {short_json(file)}")
+    rel = PurePosixPath(file)
+    # a recording is a self-contained folder: frames outside it would not travel with it
+    # and one file must have one name (no "./" aliases, no empty parts)
+    if (rel.is_absolute() or ".." in rel.parts or "\\" in file or rel.as_posix() != file
+            or "/./" in f"/{file}/" or "\x00" in file):
+        raise fail(f"{where}.file", f"expected a plain path inside the recording folder, got "
+                   f"{short_json(file)}")
+    if rel.suffix.lower() != ".png":
+        raise fail(f"{where}.file", f"expected a .png file, got {short_json(file)}")
+    if any(len(part.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES for part in rel.parts):
+        raise fail(f"{where}.file", f"file name longer than {MAX_NAME_BYTES} bytes")
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
+        raise fail(f"{where}.t", f"expected a number of seconds, got {short_json(t)}")
     return FrameEntry(file, float(t))
+
+
+def load_frame(recording: Recording, i: int) -> np.ndarray:
+    """Load frame ``i`` as an RGB ``(H, W, 3)`` uint8 or uint16 array.
+
+    Raises
+    ------
+    FrameError
+        Naming the frame file when it is missing, unreadable, not RGB or of
+        another size than the rig's camera.
+    """
+    entry = recording.frames[i]
+    path = recording.root / entry.file
+    if not path.is_file():
+        raise FrameError(f"{path}: frame file missing (listed as frames[{i}])")
+    root = recording.root.resolve()
+    if not path.resolve().is_relative_to(root):
+        raise FrameError(f"{path}: a link to a file outside the recording folder")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(PNG_SIGNATURE))
+    except OSError as exc:
+        raise FrameError(f"{path}: cannot read: {exc.strerror}") from None
+    if head != PNG_SIGNATURE:
+        raise FrameError(f"{path}: not a PNG file (frames must be PNG)")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FrameError(f"{path}: not a readable image")
+    if image.ndim != 3 or image.shape[2] != 3:
+        channels = 1 if image.ndim == 2 else image.shape[2]
+        raise FrameError(f"{path}: expected an RGB image (3 channels), got {channels}")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise FrameError(f"{path}: expected 8 or 16 bits per channel, got {image.dtype}")
+    cam = recording.rig.camera
+    h, w = image.shape[:2]
+    if (w, h) != (cam.width, cam.height):
+        raise FrameError(
+            f"{path}: {w}x{h}, expected {cam.width}x{cam.height} (camera.width x camera.height)"
+        )
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def timestamp_problems(rec: Recording) -> list[str]:
@@ -208,203 +254,70 @@ def timestamp_problems(rec: Recording) -> list[str]:
     return lines
 
 
-def frame_path_problem(file: str) -> str:
-    """Why ``file`` is not an acceptable frame path of a recording, or ``""``.
-
-    A frame path is relative, normalised (no ``.``, ``..`` or empty parts, so
-    that one file has one name), at most :data:`MAX_FRAME_NAME` characters, and
-    ends in ``.png``.
-    """
-    rel = PurePosixPath(file)
-    # a recording is a self-contained folder: frames outside it would not travel with it
-    if rel.is_absolute() or "\\" in file or "\0" in file or any(
-        part in ("", ".", "..") for part in file.split("/")
-    ):
-        return "expected a path inside the recording folder, normalised like frames/000000.png"
-    if len(file) > MAX_FRAME_NAME:
-        return f"expected a path of at most {MAX_FRAME_NAME} characters ({len(file)} given)"
-    if rel.suffix.lower() != ".png":
-        return "expected a .png file"
-    return ""
-
-
-def load_frame(recording: Recording, i: int) -> np.ndarray:
-    """Load frame ``i`` as an RGB ``(H, W, 3)`` uint8 or uint16 array.
-
-    Raises
-    ------
-    FrameError
-        Naming the frame file when it is missing, unreadable, not RGB or of
-        another size than the rig's camera.
-    """
-    entry = recording.frames[i]
-    path = recording.root / entry.file
-    try:
-        if not path.is_file():
-            raise FrameError(f"{path}: frame file missing (listed as frames[{i}])")
-        # a symlink may point anywhere: the frame must really lie inside the folder
-        real = path.resolve()
-        if not real.is_relative_to(recording.root.resolve()):
-            raise FrameError(f"{path}: links to {real}, outside the recording folder")
-        with open(path, "rb") as fh:
-            head = fh.read(len(PNG_SIGNATURE))
-    except OSError as exc:
-        raise FrameError(f"{path}: cannot read: {exc.strerror}") from None
-    if head != PNG_SIGNATURE:
-        raise FrameError(f"{path}: not a PNG file (a recording's frames are PNG images)")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise FrameError(f"{path}: not a readable image")
-    if image.ndim != 3 or image.shape[2] != 3:
-        channels = 1 if image.ndim == 2 else image.shape[2]
-        raise FrameError(f"{path}: expected an RGB image (3 channels), got {channels}")
-    if image.dtype not in (np.uint8, np.uint16):
-        raise FrameError(f"{path}: expected 8 or 16 bits per channel, got {image.dtype}")
-    if recording.bits is not None and recording.bits > 8 and image.dtype != np.uint16:
-        raise FrameError(f"{path}: 8-bit PNG, but the recording says bits = {recording.bits}")
-    if recording.bits is not None and int(image.max()) > 2**recording.bits - 1:
-        raise FrameError(
-            f"{path}: holds {int(image.max())}, more than bits = {recording.bits} allow "
-            f"({2**recording.bits - 1})"
-        )
-    cam = recording.rig.camera
-    h, w = image.shape[:2]
-    if (w, h) != (cam.width, cam.height):
-        raise FrameError(
-            f"{path}: {w}x{h}, expected {cam.width}x{cam.height} (camera.width x camera.height)"
-        )
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
-# ----------------------------------------------------------------------------- crash leftovers
-
-
-def _read_index_log(root: Path) -> list[FrameEntry]:
-    """The frames in :data:`INDEX_LOG`; a last line cut by a crash is ignored."""
-    path = root / INDEX_LOG
-    entries: list[FrameEntry] = []
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        return entries
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
-
-    def fail(where: str, what: str) -> ConfigError:
-        return ConfigError(f"{path}: {where}: {what}")
-
-    for n, line in enumerate(raw.split(b"\n"), 1):
-        if not line.strip():
-            continue
-        try:
-            entry = _parse_entry(json.loads(line.decode("utf-8")), f"line {n}", fail)
-        except (ValueError, RecursionError, ConfigError):
-            continue  # half a line (the crash) or garbage: only complete entries count
-        entries.append(entry)
-    return entries
-
-
-def _complete_png(path: Path) -> bool:
-    try:
-        with open(path, "rb") as fh:
-            if fh.read(len(PNG_SIGNATURE)) != PNG_SIGNATURE:
-                return False
-    except OSError:
-        return False
-    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is not None
-
-
-def _leftovers(root: Path, listed: set[str]) -> tuple[list[Path], list[Path]]:
-    """(temporary files, unlisted frame files) in a recording folder."""
-    temps = [p for p in (root / f".{RECORDING_JSON}.tmp",) if p.exists()]
-    unlisted: list[Path] = []
-    frames_dir = root / FRAMES_DIR
-    if frames_dir.is_dir():
-        for p in sorted(frames_dir.iterdir()):
-            if p.name.startswith(".") and p.name.endswith(".tmp"):
-                temps.append(p)
-            elif f"{FRAMES_DIR}/{p.name}" not in listed:
-                unlisted.append(p)
-    return temps, unlisted
-
-
-def recording_leftovers(rec: Recording) -> list[str]:
-    """One line per file a crash left behind or nobody listed (empty when clean).
-
-    Reports an index log (the recording was never closed), temporary files
-    (``.recording.json.tmp``, partial frames) and files in ``frames/`` that
-    ``recording.json`` does not list.
-    """
-    lines: list[str] = []
-    listed = {e.file for e in rec.frames}
-    logged = [e for e in _read_index_log(rec.root) if e.file not in listed]
-    if (rec.root / INDEX_LOG).exists():
-        lines.append(
-            f"{rec.root / INDEX_LOG}: the recording was not closed (crash or kill?); "
-            f"{len(logged)} more frame{'s' if len(logged) != 1 else ''} written: "
-            f"run `lightflow verify --repair {rec.root}`"
-        )
-    temps, unlisted = _leftovers(rec.root, listed)
-    for p in temps:
-        lines.append(f"{p}: partial file left by an interrupted write (--repair removes it)")
-    logged_files = {e.file for e in logged}
-    for p in unlisted:
-        if f"{FRAMES_DIR}/{p.name}" not in logged_files:
-            lines.append(f"{p}: not listed in {RECORDING_JSON}")
-    return lines
-
-
-def repair_recording(path: str | Path) -> list[str]:
-    """Relist every complete frame a crash left unlisted and remove partial files.
-
-    Frames in :data:`INDEX_LOG` that are complete PNGs are appended to
-    ``recording.json`` (rewritten atomically); temporary files and unreadable
-    unlisted ``.png`` files are removed; the log is removed last.  Unlisted
-    complete files without a timestamp are left in place (verify names them).
-
-    Parameters
-    ----------
-    path : str or Path
-        The recording folder.
+def unlisted_files(recording: Recording) -> tuple[list[Path], list[Path]]:
+    """Files a crash can leave behind: unlisted frame files and temporary files.
 
     Returns
     -------
-    list of str
-        One line per action taken.
+    unlisted : list of Path
+        Files in ``frames/`` that ``recording.json`` does not list.
+    temporary : list of Path
+        Leftover ``.*.tmp`` files of an interrupted atomic write.
     """
-    root = _recording_root(path)
-    rec = read_recording(root)
-    data = read_json(root / RECORDING_JSON)
+    listed = {recording.root / e.file for e in recording.frames}
+    frames_dir = recording.root / FRAMES_DIR
+    unlisted = sorted(p for p in frames_dir.glob("*") if p.is_file() and p not in listed)
+    temporary = sorted(recording.root.glob(".*.tmp"))
+    return unlisted, temporary
+
+
+def repair_recording(path: str | Path) -> tuple[int, list[Path]]:
+    """Relist every complete frame after a crash and remove partial files.
+
+    The writer appends each frame to ``frames.index`` once its file is on
+    disk, and rewrites ``recording.json`` only once per batch; a killed
+    process can therefore leave complete frames that ``recording.json`` does
+    not list yet.  This adds them (in index order) and deletes frame files
+    that are in neither list (a frame cut off mid-write) and leftover
+    temporary files.
+
+    Returns
+    -------
+    added : int
+        Frames added to ``recording.json``.
+    removed : list of Path
+        Files deleted.
+    """
+    rec = read_recording(path)
+    root = rec.root
     listed = {e.file for e in rec.frames}
-    actions: list[str] = []
-    added = []
-    for entry in _read_index_log(root):
-        if entry.file in listed:
-            continue
-        if _complete_png(root / entry.file):
-            added.append({"file": entry.file, "t": entry.t})
-            listed.add(entry.file)
-    temps, unlisted = _leftovers(root, listed)
-    if added:
-        data["frames"] = list(data["frames"]) + added
-        data["frames"].sort(key=lambda e: e["t"])  # the log is in write order, keep time order
+    entries = [{"file": e.file, "t": e.t} for e in rec.frames]
+    index = root / INDEX_FILE
+    lines = index.read_bytes().splitlines() if index.exists() else []
+    for line in lines:
         try:
-            _write_atomic(root / RECORDING_JSON, (json.dumps(data, indent=1) + "\n").encode())
-            _fsync_dir(root)
-        except OSError as exc:
-            raise ConfigError(f"{root / RECORDING_JSON}: cannot write: {exc.strerror}") from None
-        actions.append(f"{root / RECORDING_JSON}: relisted {len(added)} complete frames")
-    for p in temps:
-        p.unlink(missing_ok=True)
-        actions.append(f"{p}: removed (partial)")
-    for p in unlisted:
-        if p.suffix.lower() == ".png" and p.is_file() and not _complete_png(p):
+            entry = json.loads(line)
+            parsed = _parse_entry(entry, INDEX_FILE, lambda w, what: ConfigError(what))
+        except (ValueError, ConfigError):
+            continue  # the line being written when the process died
+        if parsed.file in listed or not (root / parsed.file).is_file():
+            continue
+        entries.append({"file": parsed.file, "t": parsed.t})
+        listed.add(parsed.file)
+    added = len(entries) - len(rec.frames)
+    keep = {root / e["file"] for e in entries}
+    removed = []
+    for p in sorted((root / FRAMES_DIR).glob("*")):
+        if p.is_file() and p not in keep:
             p.unlink()
-            actions.append(f"{p}: removed (incomplete PNG)")
-    if (root / INDEX_LOG).exists():
-        (root / INDEX_LOG).unlink()
-        actions.append(f"{root / INDEX_LOG}: removed (recording.json is complete)")
-    return actions
+            removed.append(p)
+    for p in sorted(root.glob(".*.tmp")):
+        p.unlink()
+        removed.append(p)
+    doc = json.loads((root / RECORDING_JSON).read_text())
+    doc["frames"] = entries
+    _write_atomic(root / RECORDING_JSON, (json.dumps(doc, indent=1) + "\n").encode())
+    return added, removed
 
 
 # ----------------------------------------------------------------------------- writing
@@ -444,25 +357,12 @@ class RecordingWriter:
         Exposure of every frame.
     queue_size : int
         Frames buffered between the producer and the writer thread.
-    put_timeout_s : float
+    put_timeout_s : float or None
         How long :meth:`write` may block when the queue is full before it
-        drops the frame.
+        drops the frame; None blocks until there is room (lossless).
     extra : callable, optional
         ``extra(root, frame)`` runs on the writer thread after the frame image
         is written, to save files beside it (e.g. ``root/truth/<stem>.npy``).
-    bits : int, optional
-        Significant bits per sample, written as the ``bits`` field.  By default
-        the first frame's ``bits`` attribute, if it has one; images of more than
-        8 bits must be uint16 (written as 16-bit PNG).
-
-    Notes
-    -----
-    Crash safety: each frame is written to a temporary name and synced, appended
-    (and synced) to :data:`INDEX_LOG`, then renamed to its final name;
-    ``recording.json`` is rewritten once per batch.  After a ``kill -9`` every
-    complete frame is either listed in ``recording.json`` or in the log, and
-    :func:`repair_recording` relists it.
-    The log is removed by :meth:`close`.
     """
 
     def __init__(
@@ -472,9 +372,8 @@ class RecordingWriter:
         exposure_s: float,
         *,
         queue_size: int = 16,
-        put_timeout_s: float = 0.5,
+        put_timeout_s: float | None = 0.5,
         extra: Callable[[Path, Frame], None] | None = None,
-        bits: int | None = None,
     ):
         if not exposure_s > 0:
             raise ConfigError(f"exposure_s: expected a positive number, got {exposure_s}")
@@ -488,17 +387,15 @@ class RecordingWriter:
         self._put_timeout_s = put_timeout_s
         self._queue: queue.Queue = queue.Queue(maxsize=queue_size)
         self._entries: list[dict[str, Any]] = []
+        self._bits: int | None = None
         self._names: set[str] = set()
         self._error: BaseException | None = None
         self._closed = False
-        if bits is not None and not (isinstance(bits, int) and 1 <= bits <= 16):
-            raise ConfigError(f"bits: expected an integer 1..16, got {bits!r}")
-        self.bits = bits
-        self._index = open(self.root / INDEX_LOG, "ab")  # noqa: SIM115 - closed by close()
         self.written = 0
         self.dropped = 0
         self.bytes_written = 0
         self._write_json()  # valid (with no frames) from the first moment
+        self._index = open(self.root / INDEX_FILE, "ab")  # noqa: SIM115 - closed by the thread
         _fsync_dir(self.root)
         self._thread = threading.Thread(target=self._run, name="recording-writer", daemon=True)
         self._thread.start()
@@ -520,21 +417,14 @@ class RecordingWriter:
             raise RuntimeError("RecordingWriter.write() after close()")
         if frame.stem in self._names:
             raise FrameError(f"{self.root}: frame name {frame.stem!r} is used twice")
-        problem = frame_path_problem(f"{FRAMES_DIR}/{frame.stem}.png")
-        if problem:
-            raise FrameError(f"frame name {frame.stem[:40]!r}: {problem}")
         image = frame.image
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype not in (np.uint8, np.uint16):
             raise FrameError(
                 f"frame {frame.stem}: expected an RGB uint8/uint16 image, got "
                 f"{image.dtype} {image.shape}"
             )
-        bits = getattr(frame, "bits", None)
-        if self.bits is None and bits is not None:
-            if not self._entries and self._queue.empty() and not self._names:
-                self.bits = int(bits)
-        if self.bits is not None and self.bits > 8 and image.dtype != np.uint16:
-            raise FrameError(f"frame {frame.stem}: {self.bits}-bit data must be a uint16 image")
+        if self._bits is None and frame.bits and image.dtype == np.uint16:
+            self._bits = int(frame.bits)  # one camera, one depth: the first frame says
         try:
             self._queue.put(frame, timeout=self._put_timeout_s)
         except queue.Full:
@@ -552,10 +442,6 @@ class RecordingWriter:
             self._closed = True
             self._queue.put(_STOP)  # the thread always drains, so this cannot block long
             self._thread.join()
-            self._index.close()
-            if self._error is None:
-                # recording.json now lists every frame: the crash log has done its job
-                (self.root / INDEX_LOG).unlink(missing_ok=True)
         self._raise_if_failed()
 
     def __enter__(self) -> RecordingWriter:
@@ -571,6 +457,7 @@ class RecordingWriter:
             "dropped": self.dropped,
             "mib_written": self.bytes_written / 2**20,
             "queued": self._queue.qsize(),
+            "capacity": self._queue.maxsize,
         }
 
     def _raise_if_failed(self) -> None:
@@ -608,6 +495,7 @@ class RecordingWriter:
             except BaseException as exc:  # noqa: BLE001 - stored and re-raised to the caller
                 self._error = exc
                 stop = stop or any(item is _STOP for item in batch)
+        self._index.close()
 
     def _write_frame(self, frame: Frame) -> None:
         rel = f"{FRAMES_DIR}/{frame.stem}.png"
@@ -615,27 +503,21 @@ class RecordingWriter:
         if not ok:
             raise FrameError(f"{self.root / rel}: PNG encoding failed")
         path = self.root / rel
-        # a final name only ever holds a complete frame; a crash leaves at most a .tmp
-        tmp = path.with_name(f".{path.name}.tmp")
-        entry = {"file": rel, "t": float(frame.timestamp)}
         try:
-            with open(tmp, "wb") as fh:
+            with open(path, "wb") as fh:
                 fh.write(buf)
                 fh.flush()
-                # the frame must be on disk before any index may list it
+                # the frame must be on disk before recording.json may list it
                 os.fdatasync(fh.fileno())
-            # logged before the rename: a complete frame under its final name is then
-            # always in the log, and a logged name without its file is simply skipped
-            self._index.write((json.dumps(entry) + "\n").encode())
-            self._index.flush()
-            os.fdatasync(self._index.fileno())
-            os.replace(tmp, path)
         except OSError as exc:
-            tmp.unlink(missing_ok=True)
             raise FrameError(f"{path}: cannot write frame: {exc.strerror}") from None
         if self._extra is not None:
             self._extra(self.root, frame)
+        entry = {"file": rel, "t": float(frame.timestamp)}
         self._entries.append(entry)
+        # append-only: after a crash, every frame named here is complete on disk
+        self._index.write((json.dumps(entry) + "\n").encode())
+        self._index.flush()
         self.bytes_written += len(buf)
 
     def _write_json(self) -> None:
@@ -645,8 +527,8 @@ class RecordingWriter:
             "exposure_s": self._exposure_s,
             "frames": self._entries,
         }
-        if self.bits is not None:
-            doc["bits"] = self.bits
+        if self._bits is not None:
+            doc["bits"] = self._bits
         try:
             _write_atomic(self.root / RECORDING_JSON, (json.dumps(doc, indent=1) + "\n").encode())
         except OSError as exc:

@@ -27,14 +27,6 @@ CHANNEL_INDEX = {"red": 0, "green": 1, "blue": 2}
 PATTERN_KINDS = ("uniform", "exp2", "exp2-reversed")
 #: OpenCV accepts 4, 5, 8, 12 or 14 distortion coefficients; 14 adds a tilted sensor.
 DIST_LENGTHS = (4, 5, 8, 12, 14)
-#: largest camera or projector side accepted, in pixels: larger sizes are typing
-#: errors, and taken at face value they make per-pixel maps of terabytes
-MAX_SIDE_PX = 16384
-#: a real lens moves an image point by less than this factor of its distance to
-#: the principal point; beyond it the coefficients are not a lens (e.g. 1e6)
-MAX_DISTORTION_SCALE = 4.0
-#: files larger than this are not rigs, recordings or sessions
-MAX_JSON_BYTES = 64 * 2**20
 
 
 @dataclass(frozen=True)
@@ -168,19 +160,13 @@ class Rig:
 # ----------------------------------------------------------------------------- parsing
 
 
-def show(value: Any) -> str:
-    """A short one-line rendering of a JSON value for error messages."""
-    if isinstance(value, dict):
-        return "an object"
-    if isinstance(value, list):
-        return f"a list of {len(value)}"
-    if isinstance(value, str):
-        if len(value) <= 60:
-            return json.dumps(value)
-        return f"{json.dumps(value[:40])}... ({len(value)} characters)"
-    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10**15:
-        return f"an integer of {len(str(abs(value)))} digits"
-    return json.dumps(value)
+def short_json(value: Any, limit: int = 40) -> str:
+    """A JSON value for a one-line error message, cut to a readable length."""
+    try:
+        text = json.dumps(value)
+    except (RecursionError, ValueError, TypeError):
+        return f"a deeply nested or huge {type(value).__name__}"
+    return text if len(text) <= limit else f"{text[: limit // 2]}... ({len(text)} characters)"
 
 
 def _numbers_only(value: Any, depth: int) -> bool:
@@ -213,29 +199,39 @@ class _Reader:
 
     def number(self, value: Any, where: str, positive: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(where, f"expected a number, got {show(value)}")
-        if isinstance(value, int) and abs(value) > 1e300 or not math.isfinite(value):
+            raise self.fail(where, f"expected a number, got {short_json(value)}")
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an integer beyond float range
+            finite = False
+        if not finite:
             raise self.fail(where, "expected a finite number")
         if positive and value <= 0:
-            raise self.fail(where, f"expected a positive number, got {show(value)}")
+            raise self.fail(where, f"expected a positive number, got {value}")
         return float(value)
 
-    def integer(self, value: Any, where: str, minimum: int = 1) -> int:
+    def integer(
+        self, value: Any, where: str, minimum: int = 1, maximum: int | None = None
+    ) -> int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(where, f"expected an integer, got {show(value)}")
+            raise self.fail(where, f"expected an integer, got {short_json(value)}")
         if value < minimum:
-            raise self.fail(where, f"expected an integer >= {minimum}, got {show(value)}")
+            raise self.fail(where, f"expected an integer >= {minimum}, got {short_json(value)}")
+        if maximum is not None and value > maximum:
+            raise self.fail(where, f"expected an integer <= {maximum}, got {short_json(value)}")
         return value
 
     def matrix(self, value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
         expected = "x".join(map(str, shape))
         # numpy would turn "1.5" into 1.5: strings for numbers are off-contract
         if not _numbers_only(value, len(shape)):
-            raise self.fail(where, f"expected a {expected} matrix of numbers, got {show(value)}")
+            raise self.fail(
+                where, f"expected a {expected} matrix of numbers, got {short_json(value)}"
+            )
         try:
             arr = np.array(value, dtype=float)
-        except (TypeError, ValueError, OverflowError):
-            raise self.fail(where, f"expected a {expected} matrix of finite numbers") from None
+        except (TypeError, ValueError, OverflowError, RecursionError):
+            raise self.fail(where, f"expected a {expected} matrix of numbers") from None
         if arr.shape != shape:
             got = "x".join(map(str, arr.shape)) if arr.ndim else "a scalar"
             raise self.fail(where, f"expected a {expected} matrix, got {got}")
@@ -245,32 +241,42 @@ class _Reader:
 
     def string(self, value: Any, where: str, choices: tuple[str, ...] | None = None) -> str:
         if not isinstance(value, str):
-            raise self.fail(where, f"expected a string, got {show(value)}")
+            raise self.fail(where, f"expected a string, got {short_json(value)}")
         if choices is not None and value not in choices:
-            raise self.fail(where, f"expected one of {', '.join(choices)}, got {show(value)}")
+            raise self.fail(where, f"expected one of {', '.join(choices)}, got {value!r}")
         return value
 
 
 def _parse_intrinsics(rd: _Reader, d: dict, where: str):
-    width = rd.integer(d["width"], f"{where}.width")
-    height = rd.integer(d["height"], f"{where}.height")
-    for key, value in (("width", width), ("height", height)):
-        if value > MAX_SIDE_PX:
-            raise rd.fail(f"{where}.{key}", f"expected at most {MAX_SIDE_PX} px, got {show(value)}")
+    width = rd.integer(d["width"], f"{where}.width", maximum=MAX_IMAGE_SIDE)
+    height = rd.integer(d["height"], f"{where}.height", maximum=MAX_IMAGE_SIDE)
     K = rd.matrix(d["K"], f"{where}.K", (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]):
         raise rd.fail(
             f"{where}.K", "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"
         )
+    if np.abs(K).max() > MAX_FOCAL_PX:
+        raise rd.fail(f"{where}.K", f"expected focal lengths and centre within {MAX_FOCAL_PX:g} px")
     dist_raw = d["dist"]
     if not isinstance(dist_raw, list) or len(dist_raw) not in DIST_LENGTHS:
         n = len(dist_raw) if isinstance(dist_raw, list) else "not a list"
         raise rd.fail(f"{where}.dist", f"expected 5 coefficients (k1, k2, p1, p2, k3), got {n}")
     dist = rd.matrix(dist_raw, f"{where}.dist", (len(dist_raw),))
+    if np.abs(dist).max(initial=0.0) > MAX_DISTORTION:
+        raise rd.fail(
+            f"{where}.dist",
+            f"coefficients up to {np.abs(dist).max():.3g}: expected |coefficient| <= "
+            f"{MAX_DISTORTION:g} (a calibration that failed?)",
+        )
     problem = distortion_problem(width, height, K, dist)
     if problem:
         raise rd.fail(f"{where}.dist", problem)
     return width, height, K, dist
+
+
+#: a real lens moves an image point by less than this factor of its distance to
+#: the principal point; beyond it the coefficients are not a lens
+MAX_DISTORTION_SCALE = 4.0
 
 
 def distortion_problem(width: int, height: int, K: np.ndarray, dist: np.ndarray) -> str:
@@ -296,24 +302,24 @@ def distortion_problem(width: int, height: int, K: np.ndarray, dist: np.ndarray)
 
     corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1],
                         [(width - 1) / 2, 0], [(width - 1) / 2, height - 1],
-                        [0, (height - 1) / 2], [width - 1, (height - 1) / 2]], float)
+                        [0, (height - 1) / 2], [width - 1, (height - 1) / 2]], float)  # fmt: skip
     centre = K[:2, 2]
     fx, fy = K[0, 0], K[1, 1]
     ends = np.stack([(corners[:, 0] - centre[0]) / fx, (corners[:, 1] - centre[1]) / fy], -1)
     steps = np.linspace(0.02, 1.0, 50)
-    pts = (steps[None, :, None] * ends[:, None, :]).reshape(-1, 3 - 1)
+    pts = (steps[None, :, None] * ends[:, None, :]).reshape(-1, 2)
     obj = np.concatenate([pts, np.ones((len(pts), 1))], axis=1)
     with np.errstate(all="ignore"):
         img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
-    img = img.reshape(len(ends), len(steps), 2)
-    undist = pts.reshape(len(ends), len(steps), 2) * [fx, fy]
-    r_d = np.hypot(*np.moveaxis(img - centre, -1, 0))
-    r_u = np.hypot(*np.moveaxis(undist, -1, 0))
-    keep = r_u > 1.0  # the first pixel around the principal point says nothing
-    with np.errstate(all="ignore"):
+        img = img.reshape(len(ends), len(steps), 2)
+        undist = pts.reshape(len(ends), len(steps), 2) * [fx, fy]
+        r_d = np.hypot(*np.moveaxis(img - centre, -1, 0))
+        r_u = np.hypot(*np.moveaxis(undist, -1, 0))
         ratio = r_d / r_u
-    if not np.all(np.isfinite(r_d)) or np.any(keep & ((ratio > MAX_DISTORTION_SCALE) |
-                                                      (ratio < 1 / MAX_DISTORTION_SCALE))):
+    keep = r_u > 1.0  # the first pixel around the principal point says nothing
+    if not np.all(np.isfinite(r_d)) or np.any(
+        keep & ((ratio > MAX_DISTORTION_SCALE) | (ratio < 1 / MAX_DISTORTION_SCALE))
+    ):
         return (
             f"coefficients move image points by more than a factor {MAX_DISTORTION_SCALE:g} "
             f"inside the {width}x{height} image: not a lens model"
@@ -345,7 +351,7 @@ def parse_pattern(rd: _Reader, d: Any, where: str, proj_width: int) -> Pattern:
             raise rd.fail(f"{where}.width_px", f"expected less than half the pitch ({pitch / 2:g})")
         if not 0 <= offset < proj_width:
             raise rd.fail(f"{where}.offset_px", f"expected 0 <= offset_px < {proj_width}")
-        n_lines = math.floor(min((proj_width - 1e-9 - offset) / pitch, 1e9)) + 1
+        n_lines = math.floor((proj_width - 1e-9 - offset) / pitch) + 1
         if n_lines < 3:
             raise rd.fail(
                 f"{where}.pitch_px",
@@ -377,7 +383,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     rd = _Reader(source)
     rd.obj(data, "rig", {"format", "camera", "projectors"})
     if data["format"] != RIG_FORMAT:
-        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {show(data['format'])}")
+        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {data['format']!r}")
     cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"})
     camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"))
     projs = data["projectors"]
@@ -392,11 +398,12 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
             raise rd.fail(f"{where}.name", "expected a non-empty name without '/'")
         width, height, K, dist = _parse_intrinsics(rd, pd, where)
         R = rd.matrix(pd["R"], f"{where}.R", (3, 3))
-        # a rotation has no entry beyond 1: checking that first keeps R @ R.T finite
-        if (np.abs(R).max() > 1 + 1e-5 or not np.allclose(R @ R.T, np.eye(3), atol=1e-5)
-                or np.linalg.det(R) < 0):  # fmt: skip
+        rotation = np.abs(R).max() <= 1 + 1e-5 and np.allclose(R @ R.T, np.eye(3), atol=1e-5)
+        if not rotation or np.linalg.det(R) < 0:
             raise rd.fail(f"{where}.R", "expected a rotation matrix (orthonormal, det +1)")
         t = rd.matrix(pd["t"], f"{where}.t", (3,))
+        if np.abs(t).max() > MAX_BASELINE_M:
+            raise rd.fail(f"{where}.t", f"expected a position within {MAX_BASELINE_M:g} m")
         pats = pd["patterns"]
         want = 2 if len(projs) == 1 else 1
         if not isinstance(pats, list) or len(pats) != want:
@@ -418,43 +425,50 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     return Rig(camera, tuple(projectors), source)
 
 
+#: largest JSON file read (rig files and recording.json are far smaller)
+MAX_JSON_BYTES = 256 * 2**20
+#: largest camera or projector image side accepted, in pixels
+MAX_IMAGE_SIDE = 16384
+#: plausibility bounds: K entries (px), distortion coefficients, projector position (m)
+MAX_FOCAL_PX = 1e6
+MAX_DISTORTION = 1e3
+MAX_BASELINE_M = 100.0
+
+
 def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a JSON number")
 
 
 def _read_json(path: Path) -> Any:
-    # Any byte sequence must end in one ConfigError line: bad encodings, NaN and
-    # Infinity (not JSON), integers of thousands of digits and nesting deeper than
-    # the parser's recursion limit are all files a user can hand us.
     try:
         with open(path, "rb") as fh:
-            raw = fh.read(MAX_JSON_BYTES + 1)
+            data = fh.read(MAX_JSON_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except IsADirectoryError:
-        raise ConfigError(f"{path}: expected a JSON file, got a folder") from None
+        raise ConfigError(f"{path}: expected a JSON file, found a folder") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
-    if len(raw) > MAX_JSON_BYTES:
-        raise ConfigError(f"{path}: larger than {MAX_JSON_BYTES // 2**20} MiB, not a JSON file")
+    if len(data) > MAX_JSON_BYTES:
+        raise ConfigError(
+            f"{path}: larger than {MAX_JSON_BYTES // 2**20} MiB, not a lightflow file"
+        )
     try:
-        text = raw.decode("utf-8")
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ConfigError(
-            f"{path}: not UTF-8 text (byte {exc.start}: {raw[exc.start:exc.start + 1]!r}); "
-            "save it as UTF-8"
+            f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8 JSON"
         ) from None
     if text.startswith("\ufeff"):
-        text = text[1:]  # a byte-order mark is UTF-8 all the same
+        raise ConfigError(f"{path}: starts with a byte-order mark; save it as UTF-8 without BOM")
     try:
         return json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno}") from None
     except RecursionError:
-        raise ConfigError(f"{path}: not valid JSON: nested too deeply") from None
-    except ValueError as exc:  # NaN/Infinity, or an integer too long to convert
-        msg = str(exc).splitlines()[0] if str(exc) else "bad value"
-        raise ConfigError(f"{path}: not valid JSON: {msg}") from None
+        raise ConfigError(f"{path}: JSON nested too deeply") from None
+    except ValueError as exc:  # NaN/Infinity, or an integer of thousands of digits
+        raise ConfigError(f"{path}: not valid JSON: {str(exc).splitlines()[0]}") from None
 
 
 def load_rig(path: str | Path) -> Rig:
@@ -471,15 +485,9 @@ EXAMPLE_RIGS = ("two-projector", "single-projector", "two-projector-distorted")
 def resolve_rig(spec: str | Path) -> Rig:
     """Load a rig from a file path, or one of the example rigs by name (``two-projector``)."""
     spec = str(spec)
-    if "\0" in spec:
-        raise ConfigError(f"{spec!r}: not a file name (holds a NUL byte)")
     if spec in EXAMPLE_RIGS:
         return load_rig(EXAMPLE_RIGS_DIR / f"{spec}.json")
-    try:
-        exists = Path(spec).exists()
-    except OSError as exc:  # e.g. a name longer than the file system allows
-        raise ConfigError(f"{spec[:80]}: cannot read: {exc.strerror}") from None
-    if not exists:
+    if not Path(spec).exists():
         raise ConfigError(
             f"{spec}: file not found (expected a rig file or an example rig: "
             f"{', '.join(EXAMPLE_RIGS)})"

@@ -175,9 +175,9 @@ class RigReport:
             row("working depth", [f"{st.z:.2f} m" for st in s]),
             row(lit_name, [pct(st.lit) for st in s]),
             row("usable", [pct(st.usable) for st in s]),
-            row("flat h(z): no depth", [pct(st.flat) for st in s]),
+            row("flat h(z)", [pct(st.flat) for st in s]),
             row("not invertible", [pct(st.not_invertible) for st in s]),
-            row("steepness |dh/dz| (1/m)", [num(st.median_slope, ".2f") for st in s]),
+            row("median |dh/dz| (1/m)", [num(st.median_slope, ".2f") for st in s]),
             row("median error (mm)", [num(st.median_error_mm, ".0f") for st in s]),
         ]
         n_pat = len(s[0].median_interval_px) if s else 0
@@ -189,12 +189,7 @@ class RigReport:
             "(mean over the working depths)"
         )
         lines.append(
-            "where h(z) is the log ratio of the two line flows at depth z (the depth cue); "
-            "steepness is its median change per metre, flat pixels change too little to "
-            "give depth"
-        )
-        lines.append(
-            f"median error: expected depth error for 1/4 px of error in {BAND_PX:g} px bands and "
+            f"error: expected depth error for 1/4 px of error in {BAND_PX:g} px bands and "
             "in the line intervals"
         )
         lines.append("verdict: " + ("usable" if self.usable else f"degenerate: {self.problem}"))

@@ -52,7 +52,7 @@ def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
     assert finite.size > 0 and 0.4 < float(np.median(finite)) < 1.1
     frames = set()
     for chunk in RrdReader(rrd).stream():
-        if chunk.entity_path == "/camera/depth":
+        if chunk.entity_path == "/world/camera/depth":
             rb = chunk.to_record_batch()
             frames.update(rb.column("frame").to_pylist())
     assert frames == set(range(N_FRAMES))
@@ -96,7 +96,7 @@ def test_replay_unknown_key_is_one_line_exit_2(recording, tmp_path, capsys):
     assert status == 2
     lines = err.strip().splitlines()
     assert lines == [f"lightflow: error: {rec / 'recording.json'}: unknown key 'gain' "
-                     f"(expected only: bits, exposure_s, format, frames, rig)"]  # fmt: skip
+                     f"(expected only: exposure_s, format, frames, rig; optional: bits)"]
     assert not (tmp_path / "x.rrd").exists()
 
 

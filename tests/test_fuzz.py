@@ -1,10 +1,7 @@
-"""Fuzzing the loaders: any bytes in a rig or recording.json end in one ConfigError line.
+"""Random mutations of a valid rig and recording.json through the loaders.
 
-Seeded random mutations (byte-level and structural) of a valid rig file and a
-valid recording.json go through :func:`load_rig` and :func:`read_recording`.
-Each must either load or raise :class:`ConfigError` with a one-line message
-naming the file; any other exception (UnicodeDecodeError, RecursionError,
-MemoryError, ValueError, OverflowError...) is a bug.
+Every mutation either loads or raises ConfigError with a one-line message;
+never another exception (the CLI turns ConfigError into one line and exit 2).
 """
 
 from __future__ import annotations
@@ -12,205 +9,163 @@ from __future__ import annotations
 import copy
 import json
 import random
-import subprocess
-import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
-from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.recording import RecordingWriter, load_frame, read_recording
+from lightflow.app.errors import ConfigError
+from lightflow.app.recording import RECORDING_FORMAT, read_recording
 from lightflow.app.rig import load_rig
-from lightflow.drivers.base import Frame
 
-RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
-N_MUTATIONS = 240  # per file kind
+ROOT = Path(__file__).resolve().parents[1]
+RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"
+N_MUTATIONS = 120  # per loader: 240 in all
 
-NASTY_VALUES = [
-    None, True, False, 0, -1, 1.5, -1e308, 1e308, 10**400, -(10**30), "", "1800", "x" * 5000,
-    "\u202e\u0000", [], [[]], {}, {"a": 1}, [1, 2, 3], [[1, 2], [3]], 16385, 10**12, 1e6, 1e-320,
-    "frames/./000000.png", "../../etc/passwd", "/abs.png", "frames/x.jpg",
-]  # fmt: skip
+ODD_VALUES = [
+    None, True, False, 0, -1, 1, 10**12, 10**400, -(10**400), 1e308, 1e-320, 1e6, -1e6,
+    float("nan"), float("inf"), "", "1", "0.5", "x" * 5000, "frames/../../etc/passwd",
+    "frames/./000000.png", "/etc/passwd", [], [1], [[1, 2], [3]], {}, {"a": 1}, [None] * 3,
+    "\udcff", "é", "\x00",
+]
 
 
 def _paths(doc, prefix=()):
-    """Every (container, key) path into a parsed JSON document."""
-    if isinstance(doc, dict):
-        items = doc.items()
-    elif isinstance(doc, list):
-        items = enumerate(doc)
-    else:
+    """Every path to a value inside a JSON document."""
+    yield prefix
+    if len(prefix) > 12:  # inside an inserted deep nest: its outer levels are enough
         return
-    for k, v in items:
-        yield (*prefix, k)
-        yield from _paths(v, (*prefix, k))
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from _paths(v, prefix + (i,))
 
 
-def _get(doc, path):
-    for k in path:
-        doc = doc[k]
+def _set(doc, path, value):
+    if not path:
+        return value
+    node = doc
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
     return doc
 
 
-def mutate_structure(doc, rnd: random.Random):
+def _mutate_doc(doc, rng: random.Random):
     doc = copy.deepcopy(doc)
-    for _ in range(rnd.randint(1, 3)):
-        paths = list(_paths(doc))
-        if not paths:
-            break
-        path = rnd.choice(paths)
-        parent, key = _get(doc, path[:-1]), path[-1]
-        op = rnd.random()
-        if op < 0.6:
-            parent[key] = copy.deepcopy(rnd.choice(NASTY_VALUES))
-        elif op < 0.75 and isinstance(parent, dict):
-            del parent[key]
-        elif op < 0.85 and isinstance(parent, dict):
-            parent["extra" + str(rnd.randint(0, 9))] = 1
-        elif op < 0.95:
-            value = parent[key]
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                parent[key] = value * rnd.choice([-1, 1e6, 1e-9, 10**20])
+    paths = list(_paths(doc))
+    for _ in range(rng.randint(1, 3)):
+        path = rng.choice(paths)
+        kind = rng.random()
+        try:
+            if kind < 0.6:
+                doc = _set(doc, path, copy.deepcopy(rng.choice(ODD_VALUES)))
+            elif kind < 0.75 and path:
+                parent = doc
+                for key in path[:-1]:
+                    parent = parent[key]
+                del parent[path[-1]]
+            elif kind < 0.85:
+                node = doc
+                for key in path:
+                    node = node[key]
+                if isinstance(node, dict):
+                    node["unexpected"] = 1
+                elif isinstance(node, list):
+                    node.append(copy.deepcopy(node[0]) if node else 0)
             else:
-                parent[key] = str(value)  # strings for numbers and everything else
-        else:
-            parent[key] = [[[[0]]]]
-    return json.dumps(doc).encode()
+                deep: list = []
+                for _ in range(rng.choice((50, 5000))):
+                    deep = [deep]
+                doc = _set(doc, path, deep)
+        except (KeyError, IndexError, TypeError):
+            pass
+        paths = list(_paths(doc))
+    return doc
 
 
-def mutate_bytes(data: bytes, rnd: random.Random) -> bytes:
-    op = rnd.randrange(8)
-    if op == 0:  # flip a few bytes to arbitrary values (often invalid UTF-8)
-        b = bytearray(data)
-        for _ in range(rnd.randint(1, 5)):
-            b[rnd.randrange(len(b))] = rnd.randrange(256)
-        return bytes(b)
-    if op == 1:
-        return data[: rnd.randrange(len(data))]
-    if op == 2:
-        return data.decode().encode(rnd.choice(["utf-16", "utf-16-le", "utf-32", "latin-1"]))
-    if op == 3:  # deep nesting
-        depth = rnd.choice([500, 5000, 100000])
-        return b"[" * depth + b"]" * depth
-    if op == 4:
-        return b'{"format": ' + b"[" * 50000 + b"1" + b"]" * 50000 + b"}"
-    if op == 5:
-        return data.replace(b"1.0", b"1" + b"0" * rnd.choice([400, 5000]), 1)
-    if op == 6:
-        return data.replace(b"0.0", rnd.choice([b"NaN", b"Infinity", b"-Infinity", b"1e999"]), 1)
-    return bytes(rnd.randrange(256) for _ in range(rnd.randint(0, 64)))
+def _mutate_bytes(data: bytes, rng: random.Random) -> bytes:
+    kind = rng.random()
+    if kind < 0.2:
+        return data.decode().encode("utf-16")
+    if kind < 0.3:
+        return b"\xef\xbb\xbf" + data
+    if kind < 0.5:
+        return data[: rng.randrange(len(data))]
+    if kind < 0.6:
+        return b"[" * 100000 + b"]" * 100000
+    out = bytearray(data)
+    for _ in range(rng.randint(1, 8)):
+        out[rng.randrange(len(out))] = rng.randrange(256)
+    return bytes(out)
 
 
-def check_one_line(exc: ConfigError, path: Path) -> None:
-    msg = str(exc)
-    assert "\n" not in msg and "\r" not in msg, msg
-    assert str(path) in msg, msg
-    assert len(msg) < 600, msg
-
-
-@pytest.fixture(scope="module")
-def rig_bytes():
-    return RIG_FILE.read_bytes()
-
-
-@pytest.fixture(scope="module")
-def recording_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("fuzz") / "rec"
-    rig = load_rig(RIG_FILE).scaled(0.05)
-    rng = np.random.default_rng(0)
-    with RecordingWriter(root, rig, 0.02) as w:
-        for i in range(2):
-            w.write(Frame(i, i / 30, 0.02, rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)))
-    return root
-
-
-def test_fuzz_rig(tmp_path, rig_bytes):
-    rnd = random.Random(7)
-    doc = json.loads(rig_bytes)
-    outcomes = {"loaded": 0, "ConfigError": 0}
+def _mutations(doc, rng):
+    text = json.dumps(doc, indent=1).encode()
     for i in range(N_MUTATIONS):
-        data = mutate_structure(doc, rnd) if i % 2 else mutate_bytes(rig_bytes, rnd)
-        path = tmp_path / f"rig{i}.json"
+        if i % 3 == 2:
+            yield _mutate_bytes(text, rng)
+        else:
+            mutated = _mutate_doc(doc, rng)
+            try:
+                yield json.dumps(mutated, indent=1).encode()
+            except (RecursionError, ValueError):
+                yield b"[" * 100000
+
+
+def _check_one_line(exc: ConfigError):
+    text = str(exc)
+    assert text and "\n" not in text and len(text) < 2000, text
+
+
+def test_fuzz_rig_loader(tmp_path):
+    rng = random.Random(7)
+    doc = json.loads(RIG_FILE.read_text())
+    path = tmp_path / "rig.json"
+    outcomes = {"loaded": 0, "rejected": 0}
+    for data in _mutations(doc, rng):
         path.write_bytes(data)
         try:
             load_rig(path)
             outcomes["loaded"] += 1
         except ConfigError as exc:
-            check_one_line(exc, path)
-            outcomes["ConfigError"] += 1
-    # most mutations break the file; the few harmless ones load
-    assert outcomes["ConfigError"] >= 0.8 * N_MUTATIONS, outcomes
+            _check_one_line(exc)
+            outcomes["rejected"] += 1
+    assert outcomes["rejected"] > N_MUTATIONS // 2, outcomes
 
 
-def test_fuzz_recording(tmp_path, recording_dir):
-    rnd = random.Random(11)
-    original = (recording_dir / "recording.json").read_bytes()
-    doc = json.loads(original)
-    outcomes = {"loaded": 0, "ConfigError": 0}
-    for i in range(N_MUTATIONS):
-        data = mutate_structure(doc, rnd) if i % 2 else mutate_bytes(original, rnd)
-        (recording_dir / "recording.json").write_bytes(data)
-        path = recording_dir / "recording.json"
+@pytest.fixture
+def small_recording(tmp_path) -> Path:
+    rig = json.loads(RIG_FILE.read_text())
+    rig["camera"]["width"], rig["camera"]["height"] = 64, 48
+    rec = tmp_path / "rec"
+    (rec / "frames").mkdir(parents=True)
+    for i in range(3):
+        cv2.imwrite(str(rec / "frames" / f"{i:06d}.png"), np.full((48, 64, 3), 40, np.uint8))
+    doc = {
+        "format": RECORDING_FORMAT,
+        "rig": rig,
+        "exposure_s": 0.02,
+        "frames": [{"file": f"frames/{i:06d}.png", "t": 0.1 * i} for i in range(3)],
+    }
+    (rec / "recording.json").write_text(json.dumps(doc))
+    return rec
+
+
+def test_fuzz_recording_loader(small_recording):
+    rng = random.Random(11)
+    path = small_recording / "recording.json"
+    doc = json.loads(path.read_text())
+    outcomes = {"loaded": 0, "rejected": 0}
+    for data in _mutations(doc, rng):
+        path.write_bytes(data)
         try:
-            rec = read_recording(recording_dir)
+            read_recording(small_recording)
+            outcomes["loaded"] += 1
         except ConfigError as exc:
-            check_one_line(exc, path)
-            outcomes["ConfigError"] += 1
-            continue
-        outcomes["loaded"] += 1
-        for j in range(len(rec.frames)):
-            try:
-                load_frame(rec, j)
-            except FrameError as exc:
-                assert "\n" not in str(exc)
-    (recording_dir / "recording.json").write_bytes(original)
-    assert outcomes["ConfigError"] >= 0.8 * N_MUTATIONS, outcomes
-
-
-NASTY_FILES = {
-    "utf16": lambda rig: rig.decode().encode("utf-16"),
-    "nested": lambda rig: b"[" * 100000 + b"]" * 100000,
-    "huge-width": lambda rig: rig.replace(b'"width": 1600,', b'"width": 1000000000000,', 1),
-    "string-K": lambda rig: rig.replace(b"1800.0", b'"1800.0"', 1),
-    "huge-int": lambda rig: rig.replace(b'"width": 1600,', b'"width": 1' + b"0" * 5000 + b',', 1),
-}
-
-
-@pytest.mark.parametrize("name", sorted(NASTY_FILES))
-def test_cli_nasty_rig_is_one_line_exit_2(tmp_path, rig_bytes, name):
-    path = tmp_path / "rig.json"
-    data = NASTY_FILES[name](rig_bytes)
-    assert data != rig_bytes
-    path.write_bytes(data)
-    proc = subprocess.run(
-        [sys.executable, "-m", "lightflow.app.cli", "rig", "check", str(path)],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    assert proc.returncode == 2, proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"lightflow: error: {path}: "), proc.stderr
-
-
-def test_cli_verify_and_replay_nasty_recording(tmp_path, recording_dir):
-    root = tmp_path / "rec"
-    subprocess.run(["cp", "-r", str(recording_dir), str(root)], check=True)
-    doc = json.loads((root / "recording.json").read_text())
-    doc["frames"][1]["t"] = doc["frames"][0]["t"]  # timestamps that do not increase
-    (root / "recording.json").write_text(json.dumps(doc))
-    proc = subprocess.run(
-        [sys.executable, "-m", "lightflow.app.cli", "replay", str(root)],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [
-        f"lightflow: error: {root}/recording.json: frames[1].t: 0 s does not increase "
-        "(frames[0].t = 0 s); check it with `lightflow verify`"
-    ]
-    (root / "recording.json").write_bytes(b"\xff\xfe{\x00")
-    proc = subprocess.run(
-        [sys.executable, "-m", "lightflow.app.cli", "replay", str(root)],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    assert proc.returncode == 2
-    assert len(proc.stderr.strip().splitlines()) == 1 and "not UTF-8" in proc.stderr
+            _check_one_line(exc)
+            outcomes["rejected"] += 1
+    assert outcomes["rejected"] > N_MUTATIONS // 2, outcomes

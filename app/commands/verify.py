@@ -7,12 +7,12 @@ from collections import Counter
 
 from lightflow.app.errors import ConfigError, FrameError
 from lightflow.app.recording import (
+    FRAMES_DIR,
     Recording,
     load_frame,
     read_recording,
-    recording_leftovers,
     repair_recording,
-    timestamp_problems,
+    unlisted_files,
 )
 from lightflow.app.rig import resolve_rig
 
@@ -20,15 +20,12 @@ DESCRIPTION = """\
 Check a recording folder (recording.json + frames/*.png) before replaying it or
 handing it on: recording.json must follow the format exactly (with a valid rig
 and a positive exposure_s), every listed frame must exist, be a readable RGB
-PNG of the camera size (8 or 16 bits per channel) inside the folder (no
-links out of it), appear once, and the timestamps t must increase.  A
-recording that lists no frames is a problem too, and so are files a crash left
-behind: an unclosed recording (recording.index.jsonl), temporary files and
-frames that recording.json does not list.
-
---repair, after a crash or kill during `capture --record`, relists every
-complete frame the recording had written and removes partial files; then it
-verifies as usual.  The format is described in docs/formats.md.
+PNG of the camera size (8 or 16 bits per channel), appear once, and the
+timestamps t must increase.  A recording that lists no frame, frame files
+that recording.json does not list and leftover temporary files are reported
+too: a killed `lightflow capture --record` leaves them.  `--repair` then lists
+every complete frame the recorder had written (from frames.index) and removes
+partial files; run verify again afterwards.
 
 Every problem is printed on its own line.  Exit status: 0 when the recording
 is clean, 2 when anything is wrong."""
@@ -37,7 +34,8 @@ EPILOG = """\
 examples:
   lightflow verify rec/                 # exit 0 when clean, 2 with one line per problem
   lightflow verify rec/ --rig rig.json  # check the frames against another rig's camera size
-  lightflow verify rec/ --repair        # after a crash: relist complete frames, drop partial"""
+  lightflow verify rec/ --repair        # after a crash: relist complete frames"""
+
 
 
 def register(subparsers) -> None:
@@ -51,14 +49,12 @@ def register(subparsers) -> None:
     p.add_argument("recording", metavar="REC", help="recording folder (holds recording.json)")
     p.add_argument(
         "--rig",
-        metavar="RIG",
+        metavar="RIG.json",
         help="check the frames against this rig's camera instead of the embedded rig "
         "(a file or an example rig name such as two-projector)",
     )
-    p.add_argument(
-        "--repair", action="store_true",
-        help="first relist complete frames a crash left unlisted and remove partial files",
-    )  # fmt: skip
+    p.add_argument("--repair", action="store_true",
+                   help="relist complete frames a crash left unlisted and remove partial files")
     p.set_defaults(func=run)
 
 
@@ -73,26 +69,40 @@ def check_recording(rec: Recording) -> list[str]:
     problems: list[str] = []
     src = rec.json_path
     if not rec.frames:
-        problems.append(f"{src}: frames: lists no frames (nothing to replay)")
+        problems.append(f"{src}: frames: the recording lists no frame")
+    unlisted, temporary = unlisted_files(rec)
+    if unlisted:
+        problems.append(
+            f"{rec.root / FRAMES_DIR}: {len(unlisted)} file(s) not listed in recording.json "
+            f"(first {unlisted[0].name}; a crash while recording? `lightflow verify --repair`)"
+        )
+    for p in temporary:
+        problems.append(f"{p}: leftover temporary file (an interrupted write; --repair removes it)")
     counts = Counter(e.file for e in rec.frames)
     for file, n in sorted(counts.items()):
         if n > 1:
             problems.append(f"{src}: frames: {file} is listed {n} times")
-    problems.extend(timestamp_problems(rec))
+    for i in range(1, len(rec.frames)):
+        prev, cur = rec.frames[i - 1].t, rec.frames[i].t
+        if not cur > prev:
+            problems.append(
+                f"{src}: frames[{i}].t: {cur:g} s does not increase "
+                f"(frames[{i - 1}].t = {prev:g} s)"
+            )
     for i in range(len(rec.frames)):
         try:
             load_frame(rec, i)
         except FrameError as exc:
             problems.append(str(exc))
-    problems.extend(recording_leftovers(rec))
     return problems
 
 
 def run(args: argparse.Namespace) -> int:
     rig = resolve_rig(args.rig) if args.rig else None
     if args.repair:
-        for line in repair_recording(args.recording):
-            print(f"repaired {line}")
+        added, removed = repair_recording(args.recording)
+        print(f"{args.recording}: relisted {added} frame(s), removed {len(removed)} partial "
+              f"or temporary file(s)")
     try:
         rec = read_recording(args.recording, rig)
     except ConfigError as exc:

@@ -1,13 +1,4 @@
-"""Point-cloud export (docs/formats.md section 5): one binary PLY per frame.
-
-Points are in the *world frame* of the PLY files: the camera frame turned
-half a turn about its x axis, so x points right, y up and the scene lies at
-negative z (the OpenGL convention most point-cloud viewers start in).  They are
-coloured by depth (a turbo colour scale, near = blue, far = red, over the
-frame's 2nd..98th percentile of depth) so that every point is visible however
-dark the camera image is; ``colors="image"`` takes the camera colours instead,
-stretched so the brightest of them is white.
-"""
+"""Point-cloud export: one binary little-endian PLY per frame, coloured by depth."""
 
 from __future__ import annotations
 
@@ -16,26 +7,39 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lightflow.app.errors import ConfigError, FrameError
+from lightflow.app.errors import FrameError
 from lightflow.app.geometry import camera_rays
 from lightflow.app.results import FrameResult, RunStats
 from lightflow.app.rig import Rig
-from lightflow.app.sinks.depth_export import make_output_dir, write_complete
-
-#: camera axes (x right, y down, z forward) to PLY world axes (x right, y up, z back)
-CAMERA_TO_WORLD = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
-COLOR_MODES = ("depth", "image")
+from lightflow.app.sinks.depth_export import write_atomic
 
 PLY_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
 )
 
 
-def image_to_rgb8(image: np.ndarray) -> np.ndarray:
-    """An RGB uint8 view of a uint8 or uint16 camera image (16-bit keeps its top byte)."""
-    if image.dtype == np.uint16:
-        return (image >> 8).astype(np.uint8)
-    return image.astype(np.uint8, copy=False)
+def image_to_rgb8(image: np.ndarray, full_scale: float | None = None) -> np.ndarray:
+    """An RGB uint8 copy of a camera image.
+
+    ``full_scale`` is the sample value of full exposure (4095 for a 12-bit
+    camera, see :attr:`Frame.full_scale`); by default the dtype's maximum.
+    """
+    if full_scale is None:
+        full_scale = 65535.0 if image.dtype == np.uint16 else 255.0
+    if full_scale == 255.0 and image.dtype == np.uint8:
+        return image.copy()
+    return np.clip(image * (255.0 / full_scale), 0, 255).astype(np.uint8)
+
+
+def depth_colors(z: np.ndarray) -> np.ndarray:
+    """Turbo colours (uint8 ``(n, 3)`` RGB) over the 2-98 % range of depths ``z``."""
+    if len(z) == 0:
+        return np.zeros((0, 3), np.uint8)
+    lo, hi = np.percentile(z, [2, 98])
+    t = np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1)
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)
+    # the ends of turbo are nearly black: use its bright middle, 10-90 %
+    return lut[(25.5 + t * 204).astype(np.intp), 0, ::-1].copy()  # BGR -> RGB
 
 
 def depth_to_points(
@@ -70,55 +74,32 @@ def depth_to_points(
     return points, colors
 
 
-def depth_colors(z: np.ndarray) -> np.ndarray:
-    """Turbo colours ``(n, 3)`` uint8 for depths ``z``, near blue to far red.
-
-    The scale spans the 2nd..98th percentile of ``z`` so one stray point does
-    not wash out the rest.
-    """
-    if len(z) == 0:
-        return np.zeros((0, 3), np.uint8)
-    lo, hi = np.percentile(z, [2, 98])
-    scaled = np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1)
-    idx = (scaled * 255).astype(np.uint8).reshape(-1, 1)
-    bgr = cv2.applyColorMap(idx, cv2.COLORMAP_TURBO).reshape(-1, 3)
-    return np.ascontiguousarray(bgr[:, ::-1])
-
-
-def normalised_colors(colors: np.ndarray) -> np.ndarray:
-    """Camera colours ``(n, 3)`` (any dtype) stretched so their 99th percentile is white."""
-    if len(colors) == 0:
-        return np.zeros((0, 3), np.uint8)
-    values = colors.astype(np.float32)
-    top = float(np.percentile(values.max(axis=1), 99))
-    return np.clip(values * (255.0 / max(top, 1.0)), 0, 255).astype(np.uint8)
-
-
-def write_ply(path: Path, points: np.ndarray, colors: np.ndarray,
-              comment: str = "lightflow depth, camera frame, metres") -> None:  # fmt: skip
+def write_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
     """Write a binary little-endian PLY with x y z (float32) and red green blue (uint8).
 
-    The file appears complete or not at all; a full disk raises :class:`OutputError`.
+    Points are in the PLY frame of the format document: metres, right-handed,
+    x right, y up, z from the scene towards the camera, camera at the origin.
     """
     vertices = np.empty(len(points), dtype=PLY_DTYPE)
     vertices["x"], vertices["y"], vertices["z"] = points.T
     vertices["red"], vertices["green"], vertices["blue"] = colors.T
     header = (
-        f"ply\nformat binary_little_endian 1.0\ncomment {comment}\n"
+        "ply\nformat binary_little_endian 1.0\n"
+        "comment lightflow depth, metres, x right, y up, z towards the camera\n"
         f"element vertex {len(vertices)}\n"
         "property float x\nproperty float y\nproperty float z\n"
         "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
     )
 
-    def fill(fh) -> None:
+    def write(fh) -> None:
         fh.write(header.encode("ascii"))
         fh.write(vertices.tobytes())
 
-    write_complete(path, fill)
+    write_atomic(path, write)
 
 
 class PlyExportSink:
-    """Write ``OUT/<stem>.ply`` per frame: coloured points in world axes (y up, metres).
+    """Write ``OUT/<stem>.ply`` per frame: points coloured by depth (metres, y up).
 
     Parameters
     ----------
@@ -126,16 +107,11 @@ class PlyExportSink:
         Created if missing.
     rig : Rig
         Its camera model turns depth into points (lens distortion included).
-    colors : str
-        ``depth`` (default: a colour scale over depth) or ``image`` (the
-        camera's colours, stretched to full brightness).
     """
 
-    def __init__(self, out_dir: str | Path, rig: Rig, colors: str = "depth"):
-        if colors not in COLOR_MODES:
-            raise ConfigError(f"colors: expected one of {', '.join(COLOR_MODES)}, got {colors!r}")
-        self.colors = colors
-        self.out_dir = make_output_dir(out_dir)
+    def __init__(self, out_dir: str | Path, rig: Rig):
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
         self.camera = rig.camera
         self._rays = camera_rays(rig.camera).astype(np.float32)  # once: undistortion is slow
         self.written = 0
@@ -148,15 +124,10 @@ class PlyExportSink:
             raise FrameError(
                 f"{path}: depth is {w}x{h}, the rig camera is {cam.width}x{cam.height}"
             )
-        points, colors = depth_to_points(result.depth, self._rays, result.frame.image)
-        if self.colors == "depth":
-            colors = depth_colors(points[:, 2])
-        else:
-            image = result.frame.image.reshape(-1, 3)
-            colors = normalised_colors(image.take(np.flatnonzero(np.isfinite(result.depth)),
-                                                  axis=0))  # fmt: skip
-        write_ply(path, points @ CAMERA_TO_WORLD, colors,
-                  comment="lightflow depth, world frame x right y up z back, metres")
+        points, _ = depth_to_points(result.depth, self._rays)
+        colors = depth_colors(points[:, 2])  # camera images are mostly dark: colour by depth
+        points[:, 1:] *= -1  # camera axes (y down, z forward) -> y up, z towards the camera
+        write_ply(path, points, colors)
         self.written += 1
 
     def close(self) -> None:
