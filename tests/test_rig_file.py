@@ -122,8 +122,8 @@ BAD = [
      'camera.K: expected a 3x3 matrix of numbers, got [["1800"'),
     ("distortion 1e6", TWO, lambda d: d["camera"].update(dist=[1e6, 1e6, 0, 0, 1e6]),
      "camera.dist: coefficients up to 1e+06"),
-    ("distortion folding the image", TWO, lambda d: proj0(d).update(dist=[-0.9, 0, 0, 0, 0]),
-     "projectors[0].dist: coefficients"),
+    ("distortion k1 = 50", TWO, lambda d: proj0(d).update(dist=[50, 0, 0, 0, 0]),
+     "projectors[0].dist: coefficients move image points by more than a factor 4"),
     ("width as a huge integer", TWO, lambda d: d["camera"].update(width=10**400),
      "camera.width: expected an integer <= 16384, got"),
 ]  # fmt: skip
