@@ -169,6 +169,11 @@ def short_json(value: Any, limit: int = 40) -> str:
     return text if len(text) <= limit else f"{text[: limit // 2]}... ({len(text)} characters)"
 
 
+def short_key(key: str, limit: int = 40) -> str:
+    """A JSON key quoted for a one-line error message, cut to a readable length."""
+    return repr(key) if len(key) <= limit else f"{key[: limit // 2]!r}... ({len(key)} characters)"
+
+
 def _numbers_only(value: Any, depth: int) -> bool:
     """True when ``value`` is nested lists ``depth`` deep of JSON numbers (not strings)."""
     if depth == 0:
@@ -191,7 +196,9 @@ class _Reader:
         unknown = sorted(set(value) - required - set(optional))
         if unknown:
             allowed = ", ".join(sorted(required | set(optional)))
-            raise self.fail(where, f"unknown key {unknown[0]!r} (expected only: {allowed})")
+            raise self.fail(
+                where, f"unknown key {short_key(unknown[0])} (expected only: {allowed})"
+            )
         missing = sorted(required - set(value))
         if missing:
             raise self.fail(where, f"missing key {missing[0]!r}")
@@ -243,7 +250,9 @@ class _Reader:
         if not isinstance(value, str):
             raise self.fail(where, f"expected a string, got {short_json(value)}")
         if choices is not None and value not in choices:
-            raise self.fail(where, f"expected one of {', '.join(choices)}, got {value!r}")
+            raise self.fail(
+                where, f"expected one of {', '.join(choices)}, got {short_json(value)}"
+            )
         return value
 
 
@@ -380,7 +389,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     rd = _Reader(source)
     rd.obj(data, "rig", {"format", "camera", "projectors"})
     if data["format"] != RIG_FORMAT:
-        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {data['format']!r}")
+        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {short_json(data['format'])}")
     cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"})
     camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"))
     projs = data["projectors"]

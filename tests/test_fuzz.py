@@ -242,3 +242,48 @@ def test_cli_replay_and_verify_nasty_recordings(small_recording):
     _assert_one_error_line(_cli("replay", root), root / "recording.json")
     proc = _cli("verify", root)
     assert proc.returncode == 2 and "lists no frame" in proc.stdout
+
+
+# ----------------------------------------------------------------------------- sessions
+
+
+def _session_doc() -> dict:
+    """A valid calibration session.json (formats.md section 4), frames not on disk."""
+    n = 2 + 2 * (11 + 10)  # graycode/1 for 1280x800
+    projectors = [
+        {"name": name, "width": 1280, "height": 800,
+         "patterns": [{"channel": ch, "kind": "uniform", "pitch_px": pitch, "width_px": 3.0,
+                       "offset_px": 0.0}]}
+        for name, ch, pitch in (("left", "red", 40.0), ("right", "blue", 18.0))
+    ]  # fmt: skip
+    return {
+        "format": "lightflow-calibration/1",
+        "board": {"kind": "checkerboard", "inner_corners": [9, 6], "square_m": 0.03},
+        "camera": {"width": 160, "height": 120},
+        "projectors": projectors,
+        "sequence": "graycode/1",
+        "poses": [
+            {"name": "pose00", "frames": {
+                p: [f"pose00/{p}/{i:03d}.png" for i in range(n)] for p in ("left", "right")
+            }}
+        ],
+    }
+
+
+def test_fuzz_session_loader(tmp_path):
+    from lightflow.calibration.session import read_session
+
+    doc = _session_doc()
+    path = tmp_path / "cal" / "session.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps(doc))
+    read_session(path, check_files=False)  # the base document is valid
+    rng = random.Random(5)
+    for i, data in enumerate(_mutations(doc, rng)):
+        path.write_bytes(data)
+        try:
+            read_session(path, check_files=False)
+        except ConfigError as exc:
+            _check_one_line(exc)
+        if i + 1 >= N_MUTATIONS:
+            break
