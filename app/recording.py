@@ -488,6 +488,8 @@ class RecordingWriter:
                         continue
                     self._write_frame(item)
                 # new directory entries must be durable before the list that names them
+                # the index lines too: after a power cut they name what repair relists
+                os.fdatasync(self._index.fileno())
                 _fsync_dir(self.root / FRAMES_DIR)
                 self._write_json()
                 _fsync_dir(self.root)
