@@ -159,3 +159,20 @@ def test_replay_full_disk_is_one_line_exit_2_and_no_partial_files(
     # the OS says EFBIG, or Python's buffered writer reports the short write
     assert errors[0].endswith(("File too large", "written)")), errors[0]
     assert list(out.iterdir()) == []  # complete files only: no partial file, no .tmp
+
+
+def test_replay_help_states_the_exit_codes_it_uses(capsys):
+    with pytest.raises(SystemExit):
+        main(["replay", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Exit status: 0 when every frame was replayed; 2 when any frame was bad" in text
+    assert "docs/formats.md" in text
+
+
+def test_replay_with_a_bad_frame_exits_2_as_help_says(recording, tmp_path, capsys):
+    rec = copy_recording(recording, tmp_path / "rec")
+    (rec / "frames" / "000001.png").write_bytes(b"\x89PNG\r\n\x1a\n cut off")
+    assert main(["replay", str(rec), "--export-depth", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "1 of 3 frames could not be replayed" in err
+    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["000000.npy", "000002.npy"]
