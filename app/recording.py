@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.rig import Rig, read_json, rig_from_dict, short_json
+from lightflow.app.rig import Rig, read_json, rig_from_dict, short_json, short_key
 from lightflow.drivers.base import Frame
 
 RECORDING_FORMAT = "lightflow-recording/1"
@@ -142,7 +142,8 @@ def read_recording(path: str | Path, rig: Rig | None = None) -> Recording:
     unknown = sorted(set(data) - set(_KEYS) - set(_OPTIONAL_KEYS))
     if unknown:
         raise ConfigError(
-            f"{src}: unknown key {unknown[0]!r} (expected only: {', '.join(sorted(_KEYS))}; "
+            f"{src}: unknown key {short_key(unknown[0])} "
+            f"(expected only: {', '.join(sorted(_KEYS))}; "
             f"optional: {', '.join(_OPTIONAL_KEYS)})"
         )
     bits = data.get("bits")
@@ -178,7 +179,7 @@ def _parse_entry(entry: Any, where: str, fail: Callable[[str, str], ConfigError]
         raise fail(where, f"expected an object with file and t, got {short_json(entry)}")
     unknown = sorted(set(entry) - {"file", "t"})
     if unknown:
-        raise fail(where, f"unknown key {unknown[0]!r} (expected only: file, t)")
+        raise fail(where, f"unknown key {short_key(unknown[0])} (expected only: file, t)")
     for key in ("file", "t"):
         if key not in entry:
             raise fail(where, f"missing key {key!r}")
@@ -239,6 +240,19 @@ def load_frame(recording: Recording, i: int) -> np.ndarray:
             f"{path}: {w}x{h}, expected {cam.width}x{cam.height} (camera.width x camera.height)"
         )
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def timestamp_problems(rec: Recording) -> list[str]:
+    """One line per frame whose ``t`` does not increase over the previous frame's."""
+    lines = []
+    for i in range(1, len(rec.frames)):
+        prev, cur = rec.frames[i - 1].t, rec.frames[i].t
+        if not cur > prev:
+            lines.append(
+                f"{rec.json_path}: frames[{i}].t: {cur:g} s does not increase "
+                f"(frames[{i - 1}].t = {prev:g} s)"
+            )
+    return lines
 
 
 def unlisted_files(recording: Recording) -> tuple[list[Path], list[Path]]:
@@ -474,6 +488,8 @@ class RecordingWriter:
                         continue
                     self._write_frame(item)
                 # new directory entries must be durable before the list that names them
+                # the index lines too: after a power cut they name what repair relists
+                os.fdatasync(self._index.fileno())
                 _fsync_dir(self.root / FRAMES_DIR)
                 self._write_json()
                 _fsync_dir(self.root)

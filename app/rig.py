@@ -169,6 +169,18 @@ def short_json(value: Any, limit: int = 40) -> str:
     return text if len(text) <= limit else f"{text[: limit // 2]}... ({len(text)} characters)"
 
 
+def short_key(key: str, limit: int = 40) -> str:
+    """A JSON key quoted for a one-line error message, cut to a readable length."""
+    return repr(key) if len(key) <= limit else f"{key[: limit // 2]!r}... ({len(key)} characters)"
+
+
+def _numbers_only(value: Any, depth: int) -> bool:
+    """True when ``value`` is nested lists ``depth`` deep of JSON numbers (not strings)."""
+    if depth == 0:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, list) and all(_numbers_only(v, depth - 1) for v in value)
+
+
 class _Reader:
     """Strict reader that names ``file: field`` in every error."""
 
@@ -184,7 +196,9 @@ class _Reader:
         unknown = sorted(set(value) - required - set(optional))
         if unknown:
             allowed = ", ".join(sorted(required | set(optional)))
-            raise self.fail(where, f"unknown key {unknown[0]!r} (expected only: {allowed})")
+            raise self.fail(
+                where, f"unknown key {short_key(unknown[0])} (expected only: {allowed})"
+            )
         missing = sorted(required - set(value))
         if missing:
             raise self.fail(where, f"missing key {missing[0]!r}")
@@ -216,6 +230,11 @@ class _Reader:
 
     def matrix(self, value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
         expected = "x".join(map(str, shape))
+        # numpy would turn "1.5" into 1.5: strings for numbers are off-contract
+        if not _numbers_only(value, len(shape)):
+            raise self.fail(
+                where, f"expected a {expected} matrix of numbers, got {short_json(value)}"
+            )
         try:
             arr = np.array(value, dtype=float)
         except (TypeError, ValueError, OverflowError, RecursionError):
@@ -231,7 +250,9 @@ class _Reader:
         if not isinstance(value, str):
             raise self.fail(where, f"expected a string, got {short_json(value)}")
         if choices is not None and value not in choices:
-            raise self.fail(where, f"expected one of {', '.join(choices)}, got {value!r}")
+            raise self.fail(
+                where, f"expected one of {', '.join(choices)}, got {short_json(value)}"
+            )
         return value
 
 
@@ -256,7 +277,65 @@ def _parse_intrinsics(rd: _Reader, d: dict, where: str):
             f"coefficients up to {np.abs(dist).max():.3g}: expected |coefficient| <= "
             f"{MAX_DISTORTION:g} (a calibration that failed?)",
         )
+    problem = distortion_problem(width, height, K, dist)
+    if problem:
+        raise rd.fail(f"{where}.dist", problem)
     return width, height, K, dist
+
+
+#: a real lens moves an image point by less than this factor of its distance to
+#: the principal point; beyond it the coefficients are not a lens
+MAX_DISTORTION_SCALE = 4.0
+
+
+def distortion_problem(width: int, height: int, K: np.ndarray, dist: np.ndarray) -> str:
+    """Why ``dist`` cannot describe a lens of this image, or ``""`` when it can.
+
+    Points are traced from the principal point to the image border (in
+    undistorted normalised coordinates); along each ray the distorted radius
+    must stay within :data:`MAX_DISTORTION_SCALE` of the undistorted one.
+
+    Parameters
+    ----------
+    width, height : int
+        Image size in pixels.
+    K : numpy.ndarray
+        3x3 intrinsics.
+    dist : numpy.ndarray
+        OpenCV distortion coefficients.
+    """
+    if not np.any(dist):
+        return ""
+    import cv2  # only here: rig files are read by tools that never need OpenCV otherwise
+
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1],
+                        [(width - 1) / 2, 0], [(width - 1) / 2, height - 1],
+                        [0, (height - 1) / 2], [width - 1, (height - 1) / 2]], float)  # fmt: skip
+    centre = K[:2, 2]
+    fx, fy = K[0, 0], K[1, 1]
+    ends = np.stack([(corners[:, 0] - centre[0]) / fx, (corners[:, 1] - centre[1]) / fy], -1)
+    steps = np.linspace(0.02, 1.0, 50)
+    pts = (steps[None, :, None] * ends[:, None, :]).reshape(-1, 2)
+    obj = np.concatenate([pts, np.ones((len(pts), 1))], axis=1)
+    with np.errstate(all="ignore"):
+        img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+        img = img.reshape(len(ends), len(steps), 2)
+        undist = pts.reshape(len(ends), len(steps), 2) * [fx, fy]
+        r_d = np.hypot(*np.moveaxis(img - centre, -1, 0))
+        r_u = np.hypot(*np.moveaxis(undist, -1, 0))
+        ratio = r_d / r_u
+    keep = r_u > 1.0  # the first pixel around the principal point says nothing
+    if not np.all(np.isfinite(r_d)) or np.any(
+        keep & ((ratio > MAX_DISTORTION_SCALE) | (ratio < 1 / MAX_DISTORTION_SCALE))
+    ):
+        return (
+            f"coefficients move image points by more than a factor {MAX_DISTORTION_SCALE:g} "
+            f"inside the {width}x{height} image: not a lens model"
+        )
+    # No check that the image does not fold over near its corners: calibrations
+    # from few board poses often extrapolate that way there and are still good
+    # where the board was; only coefficients no lens could have are refused.
+    return ""
 
 
 def parse_pattern(rd: _Reader, d: Any, where: str, proj_width: int) -> Pattern:
@@ -310,7 +389,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     rd = _Reader(source)
     rd.obj(data, "rig", {"format", "camera", "projectors"})
     if data["format"] != RIG_FORMAT:
-        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {data['format']!r}")
+        raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {short_json(data['format'])}")
     cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"})
     camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"))
     projs = data["projectors"]

@@ -117,3 +117,63 @@ def test_replay_help_has_examples(capsys):
     assert info.value.code == 0
     out = capsys.readouterr().out
     assert "lightflow replay rec/ --rrd out/rec.rrd" in out and "--export-depth DIR" in out
+
+
+def _run_limited(args, env, fsize=None):
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    def limit():
+        if fsize is not None:
+            # writes past the limit then fail with EFBIG instead of killing the process
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
+
+    return subprocess.run(
+        [sys.executable, "-m", "lightflow.app.cli", *args],
+        capture_output=True, text=True, env=env, preexec_fn=limit, timeout=900,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("option", ["--export-depth", "--export-ply"])
+def test_replay_full_disk_is_one_line_exit_2_and_no_partial_files(
+    recording, tmp_path_factory, tmp_path, option
+):
+    """A real process under RLIMIT_FSIZE: every write of an export file fails mid-way."""
+    import os
+
+    cache = tmp_path_factory.getbasetemp() / "lut-cache-full-disk"
+    env = {**os.environ, "LIGHTFLOW_CACHE": str(cache)}
+    # build the LUT (and compile) without a limit: only the export must hit the full disk
+    warm = _run_limited(["replay", str(recording)], env)
+    assert warm.returncode == 0, warm.stderr
+    out = tmp_path / "out"
+    proc = _run_limited(["replay", str(recording), option, str(out)], env, fsize=16384)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("lightflow: error:")]
+    suffix = "npy" if option == "--export-depth" else "ply"
+    assert len(errors) == 1
+    assert errors[0].startswith(f"lightflow: error: {out}/000000.{suffix}: cannot write: ")
+    # the OS says EFBIG, or Python's buffered writer reports the short write
+    assert errors[0].endswith(("File too large", "written)")), errors[0]
+    assert list(out.iterdir()) == []  # complete files only: no partial file, no .tmp
+
+
+def test_replay_help_states_the_exit_codes_it_uses(capsys):
+    with pytest.raises(SystemExit):
+        main(["replay", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Exit status: 0 when every frame was replayed; 2 when any frame was bad" in text
+    assert "docs/formats.md" in text
+
+
+def test_replay_with_a_bad_frame_exits_2_as_help_says(recording, tmp_path, capsys):
+    rec = copy_recording(recording, tmp_path / "rec")
+    (rec / "frames" / "000001.png").write_bytes(b"\x89PNG\r\n\x1a\n cut off")
+    assert main(["replay", str(rec), "--export-depth", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "1 of 3 frames could not be replayed" in err
+    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["000000.npy", "000002.npy"]

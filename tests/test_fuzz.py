@@ -169,3 +169,121 @@ def test_fuzz_recording_loader(small_recording):
             _check_one_line(exc)
             outcomes["rejected"] += 1
     assert outcomes["rejected"] > N_MUTATIONS // 2, outcomes
+
+
+# ----------------------------------------------------------------------------- the CLI
+
+NASTY_RIGS = {
+    "utf-16": lambda rig: rig.decode().encode("utf-16"),
+    "latin-1 byte": lambda rig: rig.replace(b'"left"', b'"l\xe9ft"', 1),
+    "nested 100000 deep": lambda rig: b"[" * 100000 + b"]" * 100000,
+    "width 1e12": lambda rig: rig.replace(b'"width": 1600,', b'"width": 1000000000000,', 1),
+    "K entry as a string": lambda rig: rig.replace(b"1800.0", b'"1800.0"', 1),
+    "integer of 5000 digits": lambda rig: rig.replace(
+        b'"width": 1600,', b'"width": 1' + b"0" * 5000 + b",", 1
+    ),
+    "distortion 1e6": lambda rig: rig.replace(b'"dist": [\n      0.0', b'"dist": [1e6', 1),
+    "NaN": lambda rig: rig.replace(b"1800.0", b"NaN", 1),
+}
+
+
+def _cli(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run(
+        [sys.executable, "-m", "lightflow.app.cli", *map(str, args)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+
+
+def _assert_one_error_line(proc, path):
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"lightflow: error: {path}"), lines[0]
+    assert len(lines[0]) < 400
+
+
+@pytest.mark.parametrize("name", sorted(NASTY_RIGS))
+def test_cli_rig_check_nasty_rig_is_one_line_exit_2(tmp_path, name):
+    original = RIG_FILE.read_bytes()
+    data = NASTY_RIGS[name](original)
+    assert data != original  # the mutation applied
+    path = tmp_path / "rig.json"
+    path.write_bytes(data)
+    _assert_one_error_line(_cli("rig", "check", path), path)
+
+
+def test_cli_simulate_with_nasty_rig_is_one_line_exit_2(tmp_path):
+    path = tmp_path / "rig.json"
+    path.write_bytes(NASTY_RIGS["utf-16"](RIG_FILE.read_bytes()))
+    _assert_one_error_line(_cli("simulate", "--rig", path, "--out", tmp_path / "o"), path)
+
+
+def test_cli_replay_and_verify_nasty_recordings(small_recording):
+    root = small_recording
+    doc = json.loads((root / "recording.json").read_text())
+    # timestamps that do not increase: replay refuses before any work, verify names it
+    doc["frames"][1]["t"] = doc["frames"][0]["t"]
+    (root / "recording.json").write_text(json.dumps(doc))
+    proc = _cli("replay", root)
+    _assert_one_error_line(proc, root / "recording.json")
+    assert "frames[1].t: " in proc.stderr and "does not increase" in proc.stderr
+    proc = _cli("verify", root, "--rig", "two-projector")
+    assert proc.returncode == 2 and "does not increase" in proc.stdout
+    # bytes that are not UTF-8
+    (root / "recording.json").write_bytes(b"\xff\xfe{\x00")
+    _assert_one_error_line(_cli("replay", root), root / "recording.json")
+    # a recording that lists no frames
+    doc["frames"] = []
+    (root / "recording.json").write_text(json.dumps(doc))
+    _assert_one_error_line(_cli("replay", root), root / "recording.json")
+    proc = _cli("verify", root)
+    assert proc.returncode == 2 and "lists no frame" in proc.stdout
+
+
+# ----------------------------------------------------------------------------- sessions
+
+
+def _session_doc() -> dict:
+    """A valid calibration session.json (formats.md section 4), frames not on disk."""
+    n = 2 + 2 * (11 + 10)  # graycode/1 for 1280x800
+    projectors = [
+        {"name": name, "width": 1280, "height": 800,
+         "patterns": [{"channel": ch, "kind": "uniform", "pitch_px": pitch, "width_px": 3.0,
+                       "offset_px": 0.0}]}
+        for name, ch, pitch in (("left", "red", 40.0), ("right", "blue", 18.0))
+    ]  # fmt: skip
+    return {
+        "format": "lightflow-calibration/1",
+        "board": {"kind": "checkerboard", "inner_corners": [9, 6], "square_m": 0.03},
+        "camera": {"width": 160, "height": 120},
+        "projectors": projectors,
+        "sequence": "graycode/1",
+        "poses": [
+            {"name": "pose00", "frames": {
+                p: [f"pose00/{p}/{i:03d}.png" for i in range(n)] for p in ("left", "right")
+            }}
+        ],
+    }
+
+
+def test_fuzz_session_loader(tmp_path):
+    from lightflow.calibration.session import read_session
+
+    doc = _session_doc()
+    path = tmp_path / "cal" / "session.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps(doc))
+    read_session(path, check_files=False)  # the base document is valid
+    rng = random.Random(5)
+    for i, data in enumerate(_mutations(doc, rng)):
+        path.write_bytes(data)
+        try:
+            read_session(path, check_files=False)
+        except ConfigError as exc:
+            _check_one_line(exc)
+        if i + 1 >= N_MUTATIONS:
+            break

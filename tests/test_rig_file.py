@@ -114,6 +114,18 @@ BAD = [
     ("three projectors", TWO, lambda d: d["projectors"].append(copy.deepcopy(proj0(d))),
      "projectors: expected a list of one or two"),
     ("duplicate names", TWO, lambda d: d["projectors"][1].update(name="left"), "projectors"),
+    ("camera width 1e12", TWO, lambda d: d["camera"].update(width=10**12),
+     "camera.width: expected an integer <= 16384, got 1000000000000"),
+    ("projector height 16385", TWO, lambda d: proj0(d).update(height=16385),
+     "projectors[0].height: expected an integer <= 16384"),
+    ("K entries as strings", TWO, lambda d: d["camera"]["K"][0].__setitem__(0, "1800"),
+     'camera.K: expected a 3x3 matrix of numbers, got [["1800"'),
+    ("distortion 1e6", TWO, lambda d: d["camera"].update(dist=[1e6, 1e6, 0, 0, 1e6]),
+     "camera.dist: coefficients up to 1e+06"),
+    ("distortion k1 = 50", TWO, lambda d: proj0(d).update(dist=[50, 0, 0, 0, 0]),
+     "projectors[0].dist: coefficients move image points by more than a factor 4"),
+    ("width as a huge integer", TWO, lambda d: d["camera"].update(width=10**400),
+     "camera.width: expected an integer <= 16384, got"),
 ]  # fmt: skip
 
 

@@ -19,8 +19,15 @@ DESCRIPTION = """\
 Run the depth pipeline over every frame of a recording folder (REC with
 recording.json and frames/), in order and without dropping any, and send the
 results to Rerun and/or export files.  Frames that are missing, unreadable or of
-the wrong size are skipped and listed at the end; the exit status is 0 when at
-least one frame was good, 2 when none was."""
+the wrong size are skipped and listed at the end.  A recording that lists no
+frames, or whose timestamps do not increase, is refused before any work.
+--export-ply writes points in world axes (y up) coloured by depth.  The file
+formats are described in docs/formats.md.
+
+Exit status: 0 when every frame was replayed; 2 when any frame was bad (the
+good ones are still processed and written), when the recording or the rig is
+malformed, or when an output cannot be written (e.g. a full disk); 130 when
+stopped with Ctrl-C."""
 
 EPILOG = """\
 examples:
@@ -41,7 +48,10 @@ def add_output_options(p: argparse.ArgumentParser, rerun_required: bool = False)
     )  # fmt: skip
     p.add_argument("--compress", action="store_true", help="log camera images to Rerun as JPEG")
     p.add_argument("--export-depth", metavar="DIR", help="write DIR/<frame>.npy depth maps (m)")
-    p.add_argument("--export-ply", metavar="DIR", help="write DIR/<frame>.ply point clouds")
+    p.add_argument(
+        "--export-ply", metavar="DIR",
+        help="write DIR/<frame>.ply point clouds (world axes, y up; see docs/formats.md)",
+    )  # fmt: skip
 
 
 def add_pipeline_options(p: argparse.ArgumentParser) -> None:
@@ -145,6 +155,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lightflow.app.recording import timestamp_problems
     from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
     from lightflow.app.status import StatusLine
@@ -158,6 +169,10 @@ def run(args: argparse.Namespace) -> int:
     n = len(camera.recording.frames)
     if n == 0:
         raise FrameError(f"{Path(args.recording) / 'recording.json'}: lists no frames")
+    disorder = timestamp_problems(camera.recording)
+    if disorder:
+        more = f" (and {len(disorder) - 1} more)" if len(disorder) > 1 else ""
+        raise ConfigError(f"{disorder[0]}{more}; check it with `lightflow verify`")
     cam = rig.camera
     print(f"replaying {n} frames of {cam.width}x{cam.height} from {args.recording}", flush=True)
     pipeline = make_pipeline(rig, args)

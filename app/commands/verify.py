@@ -25,7 +25,8 @@ timestamps t must increase.  A recording that lists no frame, frame files
 that recording.json does not list and leftover temporary files are reported
 too: a killed `lightflow capture --record` leaves them.  `--repair` then lists
 every complete frame the recorder had written (from frames.index) and removes
-partial files; run verify again afterwards.
+partial files; run verify again afterwards.  The format is described in
+docs/formats.md (section 2).
 
 Every problem is printed on its own line.  Exit status: 0 when the recording
 is clean, 2 when anything is wrong."""

@@ -27,8 +27,20 @@ def write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
-        why = exc.strerror or str(exc).splitlines()[0]
+        # a short write ("N requested and M written") carries no errno: the disk
+        # filled up or a file size limit was reached
+        why = exc.strerror or f"disk full or file size limit ({str(exc).splitlines()[0]})"
         raise OutputError(f"{path}: cannot write: {why}") from None
+
+
+def make_output_dir(path: str | Path) -> Path:
+    """Create an output folder; an I/O error becomes one :class:`OutputError` line."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot create the output folder: {exc.strerror}") from None
+    return path
 
 
 def write_depth_npy(path: Path, depth: np.ndarray) -> None:
@@ -49,8 +61,7 @@ class DepthExportSink:
     """
 
     def __init__(self, out_dir: str | Path):
-        self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.out_dir = make_output_dir(out_dir)
         self.written = 0
 
     def write(self, result: FrameResult, stats: RunStats) -> None:

@@ -11,7 +11,7 @@ from lightflow.app.errors import FrameError
 from lightflow.app.geometry import camera_rays
 from lightflow.app.results import FrameResult, RunStats
 from lightflow.app.rig import Rig
-from lightflow.app.sinks.depth_export import write_atomic
+from lightflow.app.sinks.depth_export import make_output_dir, write_atomic
 
 PLY_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -110,8 +110,7 @@ class PlyExportSink:
     """
 
     def __init__(self, out_dir: str | Path, rig: Rig):
-        self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.out_dir = make_output_dir(out_dir)
         self.camera = rig.camera
         self._rays = camera_rays(rig.camera).astype(np.float32)  # once: undistortion is slow
         self.written = 0
