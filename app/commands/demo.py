@@ -30,9 +30,13 @@ With a display the results open in a Rerun viewer; the run is always kept in
 OUT/demo.rrd as well (open it later with `rerun OUT/demo.rrd`) unless
 --no-save.  The default is 800x600 (--scale 0.5) to keep the demo short.
 
-Measured on 2 shared cores (load about 8), defaults: the first run compiles
-the renderer and the pipeline (about 60-90 s, cached afterwards); a warm run
-takes about 40-60 s for 45 frames."""
+Measured with the defaults on 2 cores shared with other work (load 10-13):
+warm caches, first depth picture after 8.5 s and the whole demo in 69 s
+(37 s of CPU); the first run also compiles the renderer (42 s, now in a
+helper process alongside the pipeline), builds the depth table (about 70 s)
+and compiles the pipeline (50 s), all cached afterwards.  Rendering is the
+bound (about 2 s a frame at 800x600 under that load).  Progress is printed
+at each stage."""
 
 EPILOG = """\
 scenes: ball-wall, board, textured-board, tilted-board, ball, fan, two-balls
