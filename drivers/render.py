@@ -356,3 +356,445 @@ def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
     ox = ((0.5 + k / g) % 1.0) - 0.5
     oy = ((0.5 + k / (g * g)) % 1.0) - 0.5
     return np.stack([t, ox, oy], axis=1)
+
+
+# ---------------------------------------------------------------------------
+# Fast form: exact time integration between adaptive knots
+# ---------------------------------------------------------------------------
+#
+# The slow form above samples time and pixel area together (Monte Carlo).  The
+# fast form traces the pixel centre at time knots only, refined by bisection
+# where the hit surface, its lighting or the projector column stop being
+# linear in time, and integrates the line light exactly between knots: with the
+# column u moving linearly from ua to ub, the mean light is
+# (G(ub) - G(ua)) / (ub - ua) where G is the antiderivative of the line light.
+# G is tabulated per pattern with its derivative, so a cubic Hermite lookup is
+# exact to ~1e-7.  The pixel area is a fixed sub-pixel grid whose points reuse
+# the centre's trace (same primitive, own hit point, albedo and column); a
+# pixel where a sub-point leaves the primitive at any knot is an edge pixel and
+# is integrated again with every sub-point traced on its own.
+
+@nb.njit(cache=True)
+def erf(x):
+    """Elementwise ``math.erf`` of an array."""
+    out = np.empty_like(x)
+    for i in range(x.size):
+        out.flat[i] = math.erf(x.flat[i])
+    return out
+
+
+TABLE_STEP = 1.0 / 16.0  # projector pixels between table nodes
+TOL_U = 0.05  # projector px: a segment is linear when the midpoint is this close
+TOL_REL = 0.01  # relative irradiance / albedo deviation accepted as linear
+MAX_KNOTS = 64  # stack size bound (depth <= MAX_KNOTS - 2)
+
+
+def line_light_tables(footprints: np.ndarray, sigma: float, width: int):
+    """Tables of the line light ``L``, its derivative and its antiderivative ``G``.
+
+    Parameters
+    ----------
+    footprints : numpy.ndarray
+        ``(n, 2)`` lit column intervals of one pattern (projector pixels).
+    sigma : float
+        Gaussian projector defocus in projector pixels.
+    width : int
+        Projector width in pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(4, n_nodes)``: row 0 ``L``, row 1 ``dL/du``, row 2 ``G``; row 3 holds
+        ``[u_first_node, step, 0, ...]``.
+    """
+    pad = 8.0 * sigma + 4.0
+    u = np.arange(-pad, width + pad + TABLE_STEP, TABLE_STEP)
+    k = 1.0 / (math.sqrt(2.0) * sigma)
+    big_l = np.zeros_like(u)
+    dl = np.zeros_like(u)
+    g = np.zeros_like(u)
+    def anti(x):  # antiderivative of 0.5 * erf(k x)
+        return 0.5 * (x * erf(k * x) + np.exp(-(k * x) ** 2) / (k * math.sqrt(math.pi)))
+
+    gauss = k / math.sqrt(math.pi)
+    for a, b in footprints:
+        near = (u > a - pad - 1) & (u < b + pad + 1)
+        x1 = u[near] - a
+        x2 = u[near] - b
+        big_l[near] += 0.5 * (erf(k * x1) - erf(k * x2))
+        dl[near] += gauss * (np.exp(-(k * x1) ** 2) - np.exp(-(k * x2) ** 2))
+        # G = sum of (anti(u - a) - anti(u - b) + (b - a) / 2): 0 far left, b - a far right
+        g[near] += anti(x1) - anti(x2) + 0.5 * (b - a)
+        g[u >= b + pad + 1] += b - a
+    out = np.zeros((4, u.size))
+    out[0], out[1], out[2] = big_l, dl, g
+    out[3, 0], out[3, 1] = u[0], TABLE_STEP
+    return out
+
+
+@nb.njit(cache=True, inline="always")
+def _hermite(tab, row, drow, u):
+    """Cubic Hermite lookup of ``tab[row]`` with derivative ``tab[drow]``."""
+    u0 = tab[3, 0]
+    h = tab[3, 1]
+    n = tab.shape[1]
+    x = (u - u0) / h
+    if x <= 0.0:
+        return tab[row, 0]
+    if x >= n - 1:
+        return tab[row, n - 1]
+    i = int(x)
+    f = x - i
+    f2 = f * f
+    f3 = f2 * f
+    return (
+        (2 * f3 - 3 * f2 + 1) * tab[row, i]
+        + (f3 - 2 * f2 + f) * h * tab[drow, i]
+        + (-2 * f3 + 3 * f2) * tab[row, i + 1]
+        + (f3 - f2) * h * tab[drow, i + 1]
+    )
+
+
+@nb.njit(cache=True, inline="always")
+def _mean_light(tab, ua, ub):
+    """Mean line light while the column moves linearly from ``ua`` to ``ub``."""
+    du = ub - ua
+    if abs(du) < 0.02:
+        return _hermite(tab, 0, 1, 0.5 * (ua + ub))
+    return (_hermite(tab, 2, 0, ub) - _hermite(tab, 2, 0, ua)) / du
+
+
+@nb.njit(cache=True)
+def _knot(
+    st, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx, suby, t
+):  # fmt: skip
+    """Fill knot state ``st`` at time ``t``; returns False when a sub-point leaves the surface.
+
+    Layout: 0 prim index (-1 none), 1 lit bits, then per sub-point s
+    ``2 + s * (1 + 2 n_proj)``: albedo, then per projector (u, irradiance).
+    """
+    n_sub = subx.shape[0]
+    n_proj = projs.shape[0]
+    stride = 1 + 2 * n_proj
+    s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, rx, ry, 1.0, t, tex, np.inf)
+    st[0] = pi
+    st[1] = 0.0
+    if pi < 0:
+        for k in range(2, st.shape[0]):
+            st[k] = 0.0
+        return True
+    X = s * rx
+    Y = s * ry
+    Z = s
+    if nx * X + ny * Y + nz * Z > 0:
+        nx, ny, nz = -nx, -ny, -nz
+    bits = 0
+    for q in range(n_proj):
+        u, cosi, dist2 = _lit_by(
+            prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
+        )
+        irr[q] = 0.0
+        if cosi > 0.0:
+            bits |= 1 << q
+            irr[q] = proj_power[q] * cosi / dist2
+    st[1] = bits
+    ok = True
+    for k in range(n_sub):
+        base = 2 + k * stride
+        if n_sub == 1 and subx[0] == rx and suby[0] == ry:
+            sa, sx, sy, sz = alb, X, Y, Z
+        else:
+            sa_s, _nx, _ny, _nz, sa = _intersect(prims[pi], 0.0, 0.0, 0.0, subx[k], suby[k], 1.0,
+                                                 t, tex)
+            if not sa_s < np.inf:
+                ok = False
+                sa_s = s
+                sa = alb
+            sx, sy, sz = sa_s * subx[k], sa_s * suby[k], sa_s
+        st[base] = sa
+        for q in range(n_proj):
+            if bits & (1 << q):
+                u, _v = _project_u(projs[q], sx, sy, sz)
+                st[base + 1 + 2 * q] = u
+                st[base + 2 + 2 * q] = irr[q] * sa
+            else:
+                st[base + 1 + 2 * q] = 0.0
+                st[base + 2 + 2 * q] = 0.0
+    return ok
+
+
+@nb.njit(cache=True, inline="always")
+def _linear(a, m, b, tol):
+    return abs(m - 0.5 * (a + b)) <= tol
+
+
+@nb.njit(cache=True)
+def _accept(sa, sm, sb, n_sub, n_proj):
+    if sa[0] != sm[0] or sm[0] != sb[0] or sa[1] != sm[1] or sm[1] != sb[1]:
+        return False
+    if sa[0] < 0:
+        return True
+    stride = 1 + 2 * n_proj
+    for k in range(n_sub):
+        base = 2 + k * stride
+        if not _linear(sa[base], sm[base], sb[base], TOL_REL * max(sm[base], 1e-3)):
+            return False
+        for q in range(n_proj):
+            if not _linear(sa[base + 1 + 2 * q], sm[base + 1 + 2 * q], sb[base + 1 + 2 * q], TOL_U):
+                return False
+            ia = sa[base + 2 + 2 * q]
+            im = sm[base + 2 + 2 * q]
+            ib = sb[base + 2 + 2 * q]
+            if not _linear(ia, im, ib, TOL_REL * max(im, 1e-9)):
+                return False
+    return True
+
+
+@nb.njit(cache=True)
+def _add_segment(acc, sa, sb, dt, n_sub, n_proj, tables, pat_proj, pat_channel, crosstalk,
+                 ambient):  # fmt: skip
+    """Add the light of one segment between knot states ``sa`` and ``sb`` (duration ``dt``)."""
+    stride = 1 + 2 * n_proj
+    w = dt / n_sub
+    same = sa[0] == sb[0] and sa[1] == sb[1]
+    for k in range(n_sub):
+        base = 2 + k * stride
+        amb = 0.5 * (sa[base] + sb[base]) * w
+        acc[0] += ambient[0] * amb
+        acc[1] += ambient[1] * amb
+        acc[2] += ambient[2] * amb
+        for m in range(pat_proj.shape[0]):
+            q = pat_proj[m]
+            ua = sa[base + 1 + 2 * q]
+            ub = sb[base + 1 + 2 * q]
+            ia = sa[base + 2 + 2 * q]
+            ib = sb[base + 2 + 2 * q]
+            if same:
+                if ia == 0.0 and ib == 0.0:
+                    continue
+                light = 0.5 * (ia + ib) * _mean_light(tables[m], ua, ub)
+            else:
+                # a surface or shadow edge inside a segment at the finest level:
+                # trapezoid of the instantaneous values
+                light = 0.0
+                if ia > 0.0:
+                    light += 0.5 * ia * _hermite(tables[m], 0, 1, ua)
+                if ib > 0.0:
+                    light += 0.5 * ib * _hermite(tables[m], 0, 1, ub)
+            c = pat_channel[m]
+            acc[0] += crosstalk[0, c] * light * w
+            acc[1] += crosstalk[1, c] * light * w
+            acc[2] += crosstalk[2, c] * light * w
+
+
+@nb.njit(cache=True)
+def _classify(prims, tex, projs, proj_centre, proj_size, rx, ry, t):
+    """Primitive index and lit bits of the tracer ray at ``t`` (no shading)."""
+    s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, rx, ry, 1.0, t, tex, np.inf)
+    if pi < 0:
+        return -1, 0
+    X = s * rx
+    Y = s * ry
+    Z = s
+    if nx * X + ny * Y + nz * Z > 0:
+        nx, ny, nz = -nx, -ny, -nz
+    bits = 0
+    for q in range(projs.shape[0]):
+        u, cosi, dist2 = _lit_by(
+            prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
+        )
+        if cosi > 0.0:
+            bits |= 1 << q
+    return pi, bits
+
+
+@nb.njit(cache=True)
+def _integrate(
+    buf, acc, rx, ry, subx, suby, prims, tex, projs, proj_centre, proj_size, proj_power, tables,
+    pat_proj, pat_channel, crosstalk, ambient, t0, exposure, dmin, dmax, weight,
+):  # fmt: skip
+    """Adaptive exact time integration for one tracer ray; False if a sub-point left."""
+    n_sub = subx.shape[0]
+    n_proj = projs.shape[0]
+    nf = 2 + n_sub * (1 + 2 * n_proj)
+    # scratch rows of ``buf`` (allocated once per image row by the caller)
+    stack = buf[:MAX_KNOTS, :nf]
+    left = buf[MAX_KNOTS, :nf]
+    mid = buf[MAX_KNOTS + 1, :nf]
+    irr = buf[MAX_KNOTS + 2]
+    st_t = buf[MAX_KNOTS + 3, :MAX_KNOTS]
+    st_d = buf[MAX_KNOTS + 4, :MAX_KNOTS]
+    part = buf[MAX_KNOTS + 5, :3]
+    mid2 = buf[MAX_KNOTS + 6, :nf]
+    part[:] = 0.0
+    t_edge = exposure / 2.0**dmax  # resolution of a surface edge crossing in time
+    d_lin = min(dmax, dmin + 2)  # smooth non-linearity is refined at most this deep
+    ok = _knot(left, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
+               suby, t0)  # fmt: skip
+    tl = t0
+    top = 0
+    ok &= _knot(stack[0], irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
+                suby, t0 + exposure)  # fmt: skip
+    st_t[0] = t0 + exposure
+    st_d[0] = 0
+    while top >= 0:
+        tr = st_t[top]
+        d = int(st_d[top])
+        right = stack[top]
+        if d >= dmin and (left[0] != right[0] or left[1] != right[1]):
+            # a surface or shadow edge passes: find the crossing by bisection on
+            # the classification alone, then shade both sides of it once
+            ca = (int(left[0]), int(left[1]))
+            ta = tl
+            tb = tr
+            while tb - ta > t_edge:
+                tm = 0.5 * (ta + tb)
+                if _classify(prims, tex, projs, proj_centre, proj_size, rx, ry, tm) == ca:
+                    ta = tm
+                else:
+                    tb = tm
+            ok &= _knot(mid, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry,
+                        subx, suby, ta)  # fmt: skip
+            ok &= _knot(mid2, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry,
+                        subx, suby, tb)  # fmt: skip
+            _add_segment(part, left, mid, ta - tl, n_sub, n_proj, tables, pat_proj, pat_channel,
+                         crosstalk, ambient)  # fmt: skip
+            _add_segment(part, mid, mid2, tb - ta, n_sub, n_proj, tables, pat_proj, pat_channel,
+                         crosstalk, ambient)  # fmt: skip
+            _add_segment(part, mid2, right, tr - tb, n_sub, n_proj, tables, pat_proj,
+                         pat_channel, crosstalk, ambient)  # fmt: skip
+            left[:] = right
+            tl = tr
+            top -= 1
+            continue
+        tm = 0.5 * (tl + tr)
+        ok &= _knot(mid, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
+                    suby, tm)  # fmt: skip
+        split = d < dmin or (d < d_lin and not _accept(left, mid, right, n_sub, n_proj))
+        if split and top + 1 < MAX_KNOTS:
+            st_d[top] = d + 1
+            top += 1
+            stack[top, :] = mid
+            st_t[top] = tm
+            st_d[top] = d + 1
+            continue
+        _add_segment(part, left, mid, tm - tl, n_sub, n_proj, tables, pat_proj, pat_channel,
+                     crosstalk, ambient)  # fmt: skip
+        _add_segment(part, mid, right, tr - tm, n_sub, n_proj, tables, pat_proj,
+                     pat_channel, crosstalk, ambient)  # fmt: skip
+        left[:] = right
+        tl = tr
+        top -= 1
+    acc[0] += part[0] * weight
+    acc[1] += part[1] * weight
+    acc[2] += part[2] * weight
+    return ok
+
+
+@nb.njit(cache=True, parallel=True)
+def render_exposure_fast(
+    rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power, tables,
+    pat_proj, pat_channel, crosstalk, ambient, t0, exposure, sub, dmin, dmax, out,
+):  # fmt: skip
+    """Fast form of :func:`render_exposure`: exact in time, ``sub x sub`` grid over the pixel.
+
+    ``tables``: ``(n_pat, 4, n_nodes)`` from :func:`line_light_tables`.  ``dmin``/``dmax``
+    bound the bisection depth of the exposure (``2**d`` segments).  Returns the
+    number of edge pixels that were integrated with every sub-point traced.
+    """
+    h, w = rays.shape[:2]
+    n_sub = sub * sub
+    edges = np.zeros(h, dtype=np.int64)
+    for i in nb.prange(h):
+        acc = np.zeros(3)
+        buf = np.empty((MAX_KNOTS + 7, max(2 + n_sub * (1 + 2 * projs.shape[0]), MAX_KNOTS)))
+        subx = np.empty(n_sub)
+        suby = np.empty(n_sub)
+        one_x = np.empty(1)
+        one_y = np.empty(1)
+        for j in range(w):
+            rx = rays[i, j, 0]
+            ry = rays[i, j, 1]
+            for a in range(sub):
+                for b in range(sub):
+                    ox = (a + 0.5) / sub - 0.5
+                    oy = (b + 0.5) / sub - 0.5
+                    subx[a * sub + b] = rx + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
+                    suby[a * sub + b] = ry + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
+            acc[:] = 0.0
+            ok = _integrate(
+                buf, acc, rx, ry, subx, suby, prims, tex, projs, proj_centre, proj_size, proj_power,
+                tables, pat_proj, pat_channel, crosstalk, ambient, t0, exposure, dmin, dmax, 1.0,
+            )  # fmt: skip
+            if not ok:
+                edges[i] += 1
+                acc[:] = 0.0
+                for k in range(n_sub):
+                    one_x[0] = subx[k]
+                    one_y[0] = suby[k]
+                    _integrate(
+                        buf, acc, subx[k], suby[k], one_x, one_y, prims, tex, projs, proj_centre,
+                        proj_size, proj_power, tables, pat_proj, pat_channel, crosstalk,
+                        ambient, t0, exposure, dmin, dmax, 1.0 / n_sub,
+                    )  # fmt: skip
+            out[i, j, 0] = acc[0] / exposure
+            out[i, j, 1] = acc[1] / exposure
+            out[i, j, 2] = acc[2] / exposure
+    return edges.sum()
+
+
+MIN_STEP_PX = 16.0  # at least one knot per this much image motion (thin objects are not skipped)
+EDGE_STEP_PX = 0.25  # bisection stops when a segment moves the image by less than this
+
+
+def image_motion_px(prims: np.ndarray, t0: float, exposure: float, fx: float, fy: float) -> float:
+    """Longest image path (pixels, pinhole) of any moving primitive's extreme points.
+
+    Parameters
+    ----------
+    prims : numpy.ndarray
+        Primitive rows valid over the exposure.
+    t0, exposure : float
+        Exposure start and length (seconds).
+    fx, fy : float
+        Camera focal lengths in pixels.
+
+    Returns
+    -------
+    float
+        Conservative image motion over the exposure; 0 for a static scene.
+    """
+    times = t0 + exposure * np.linspace(0.0, 1.0, 17)
+    tt = times[:, None]
+    best = 0.0
+    for p in prims:
+        kind = int(p[0])
+        if kind == PRIM_RECT:
+            c = p[4:7] + p[7:10] * tt
+            pts = [c + sa * p[16] * p[10:13] + sb * p[17] * p[13:16]
+                   for sa in (-1, 1) for sb in (-1, 1)]  # fmt: skip
+        elif kind == PRIM_SPHERE:
+            c = p[4:7] + p[7:10] * tt + 0.5 * p[10:13] * tt * tt
+            pts = [c] + [c + sgn * p[13] * np.eye(3)[k] for k in range(3) for sgn in (-1, 1)]
+        elif kind == PRIM_BLADE:
+            ax, a1 = p[7:10], p[10:13]
+            b = np.cross(ax, a1)
+            th = (p[14] + p[13] * times)[:, None]
+            er = np.cos(th) * a1 + np.sin(th) * b
+            pts = [p[4:7] + r * er for r in (p[15], p[16])]
+        else:
+            continue
+        for q in pts:
+            z = np.maximum(q[:, 2], 1e-3)
+            uv = np.stack([fx * q[:, 0] / z, fy * q[:, 1] / z], axis=1)
+            best = max(best, float(np.sum(np.linalg.norm(np.diff(uv, axis=0), axis=1))))
+    return best
+
+
+def knot_depths(motion_px: float) -> tuple[int, int]:
+    """Minimum and maximum bisection depth of the exposure for an image motion."""
+    dmax = int(np.clip(math.ceil(math.log2(max(motion_px / EDGE_STEP_PX, 1.0))), 1, MAX_KNOTS - 2))
+    # an accepted segment is shaded at its ends and midpoint, so depth d gives
+    # knots every exposure / 2**(d + 1)
+    dmin = int(np.clip(math.ceil(math.log2(max(motion_px / MIN_STEP_PX, 1.0))) - 1, 0, dmax))
+    return dmin, dmax

@@ -21,7 +21,15 @@ from lightflow.app.patterns import line_footprints
 from lightflow.app.rig import CHANNEL_INDEX, Rig
 
 from .base import Camera, Frame
-from .render import render_exposure, render_truth, stratified_offsets
+from .render import (
+    image_motion_px,
+    knot_depths,
+    line_light_tables,
+    render_exposure,
+    render_exposure_fast,
+    render_truth,
+    stratified_offsets,
+)
 from .scenes import Scene, get_scene, newspaper_texture
 
 #: a static white surface facing the projector at this distance reaches WHITE_DN
@@ -48,7 +56,13 @@ class SensorModel:
     crosstalk : tuple
         3x3 camera-channel response to each projector colour (columns: R, G, B light).
     samples : int
-        Time/area samples per pixel.
+        Time/area samples per pixel of the sampled (slow, Monte Carlo) form.
+    method : str
+        ``"exact"`` (default): exact integration over the exposure between
+        adaptive time knots, ``subpixel`` x ``subpixel`` points over the pixel;
+        ``"sampled"``: the slow Monte Carlo form (reference for tests).
+    subpixel : int
+        Points per axis over the pixel area in the exact form.
     bit_depth : int
         8 or 16 bits per channel.
     """
@@ -61,6 +75,8 @@ class SensorModel:
     crosstalk: tuple = ((1.0, 0.03, 0.04), (0.04, 1.0, 0.05), (0.03, 0.05, 1.0))
     samples: int = 32
     bit_depth: int = 8
+    method: str = "exact"
+    subpixel: int = 2
 
 
 @dataclass
@@ -130,6 +146,16 @@ class SceneRenderer:
             [WHITE_DN * float(np.sum((c - target) ** 2)) for c in self.proj_centre]
         )
         self.offsets = stratified_offsets(sensor.samples)
+        tabs = [
+            line_light_tables(f, sensor.projector_defocus_px, proj.width)
+            for f, (proj, _) in zip(foots, pats, strict=True)
+        ]
+        n_nodes = max(t.shape[1] for t in tabs)
+        self.tables = np.zeros((len(tabs), 4, n_nodes))
+        for m, t in enumerate(tabs):
+            self.tables[m, :, : t.shape[1]] = t
+            self.tables[m, :3, t.shape[1] :] = t[:3, -1:]
+        self.edge_pixels = 0
 
     def radiance(self, t0: float, exposure_s: float) -> np.ndarray:
         """Noise-free mean image (float DN) of the exposure starting at ``t0``."""
@@ -139,6 +165,24 @@ class SceneRenderer:
         # brightness scales with exposure relative to the scene's nominal exposure
         gain = exposure_s / self.scene.exposure_s
         s = self.sensor
+        if s.method == "exact":
+            cam = self.rig.camera
+            motion = image_motion_px(prims, t0, exposure_s, cam.K[0, 0], cam.K[1, 1])
+            dmin, dmax = knot_depths(motion)
+            self.edge_pixels = render_exposure_fast(
+                self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+                self.proj_centre, self.proj_size, self.proj_power * gain, self.tables,
+                self.pat_proj, self.pat_channel, np.array(s.crosstalk),
+                np.full(3, s.ambient_dn * gain), t0, exposure_s, s.subpixel, dmin, dmax, out,
+            )  # fmt: skip
+        else:
+            self._render_sampled(prims, gain, t0, exposure_s, out)
+        if s.lens_blur_px > 0:
+            out = cv2.GaussianBlur(out, (0, 0), s.lens_blur_px)
+        return out
+
+    def _render_sampled(self, prims, gain, t0, exposure_s, out) -> None:
+        s = self.sensor
         render_exposure(
             self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
             self.proj_centre, self.proj_size, self.proj_power * gain, self.pat_proj,
@@ -147,9 +191,6 @@ class SceneRenderer:
             np.array(s.crosstalk), np.full(3, s.ambient_dn * gain), t0, exposure_s,
             s.samples, self.offsets, out,
         )  # fmt: skip
-        if s.lens_blur_px > 0:
-            out = cv2.GaussianBlur(out, (0, 0), s.lens_blur_px)
-        return out
 
     def expose(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Shot and read noise, quantisation: the sensor's RGB image."""

@@ -34,7 +34,7 @@ def test_recording_reads_back_with_ground_truth(board_rec):
     assert rec.frames[1].t == pytest.approx(1 / 30)
     image = load_frame(rec, 1)
     assert image.shape == (H, W, 3) and image.dtype == np.uint8
-    assert image.max() > 100  # lit lines, not a black frame
+    assert image.max() > 80  # lit lines, not a black frame
     for stem in ("000000", "000001"):
         truth = GroundTruth.load(board_rec / "ground_truth" / f"{stem}.npz")
         assert truth.depth.shape == truth.object_id.shape == truth.lit.shape == (H, W)
