@@ -7,10 +7,10 @@ BIN := $(VENV)/bin
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT_PACKAGES := python3-venv python3-dev gcc pkg-config libgirepository1.0-dev libcairo2-dev \
 	gir1.2-aravis-0.8 aravis-tools-cli xvfb x11-xserver-utils xserver-xorg-core \
-	xserver-xorg-video-dummy iproute2 util-linux libgl1 libegl1
+	xserver-xorg-video-dummy iproute2 util-linux libgl1 libegl1 mesa-vulkan-drivers
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint bench eval clean
+.PHONY: setup demo test lint bench bench-capture eval clean
 
 setup: $(STAMP)
 
@@ -42,6 +42,12 @@ test: setup
 bench: setup
 	$(BIN)/lightflow bench --frames 30
 	$(BIN)/lightflow bench --recorder --frames 5
+
+# Live capture from Aravis's GigE Vision simulator (loopback, private netns):
+# three cold runs of `capture --record --lossless`, with one core kept busy.
+bench-capture: setup
+	$(NETNS) sh -c 'ip link set lo up && cd tests && ../$(BIN)/python bench_capture.py --runs 3 --hog && \
+	  ../$(BIN)/python bench_capture.py --runs 1 --size 1600x1200 --fps 30 --frames 300 --rerun'
 
 # Accuracy on synthetic recordings (1600x1200): the table and the plot in the README.
 EVAL := out/eval

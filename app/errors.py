@@ -18,6 +18,10 @@ class FrameError(LightflowError):
     """A frame file is missing, unreadable or of the wrong size."""
 
 
+class OutputError(LightflowError):
+    """An output (export, recording, .rrd) could not be written, e.g. a full disk."""
+
+
 class DriverError(LightflowError):
     """A camera or pattern output failed or could not be opened."""
 

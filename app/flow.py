@@ -20,7 +20,17 @@ import numpy as np
 from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
 from .patterns import local_pitch
-from .profile_model import M_STEP, S_AXIS, W_STEP, fit_blur, tables, trilinear_at
+from .profile_model import (
+    L_AXIS,
+    M_STEP,
+    R_STEP,
+    S_AXIS,
+    W_STEP,
+    fit_blur,
+    joint_at,
+    tables,
+    trilinear_at,
+)
 from .rig import Rig
 
 
@@ -34,9 +44,22 @@ class FlowParams:
         Gaussian sigma, in camera pixels, of the masked smoothing of the log
         flow ratio (the paper uses 2 to 60); 0 disables it.
     static_factor : float
-        A band counts as moving only if its length exceeds the line width in
-        camera pixels times this factor plus ``static_margin_px``.
+        A band counts as moving only if its sweep, averaged over a few cells,
+        exceeds the line width in camera pixels times this factor plus
+        ``static_margin_px``.
     static_margin_px : float
+    measure_factor, measure_margin_px : float
+        Sweeps of single cells below ``measure_factor`` line widths plus
+        ``measure_margin_px`` are not measured at all (a static line).
+    sweep_smoothing_px : float
+        Gaussian sigma (camera px) of the averaging of the sweeps of each
+        pattern before the moving test and the log ratio.
+    sweep_outlier : float
+        Cells whose sweep differs from that average by more than this fraction
+        of it are dropped (another surface).
+    measured_share : float
+        Cells where less than this share of the banded cells around have a
+        measurable sweep are dropped (sweeps at the floor, selected by noise).
     outlier_sigmas : float
         Pixels whose log ratio is further than this many robust deviations
         from the smoothed field are dropped before the final smoothing.
@@ -45,39 +68,58 @@ class FlowParams:
     smoothing_px: float = 24.0
     static_factor: float = 0.9
     static_margin_px: float = 1.0
+    measure_factor: float = 0.5
+    measure_margin_px: float = 0.5
+    sweep_smoothing_px: float = 8.0
+    sweep_outlier: float = 0.4
+    measured_share: float = 0.6
     fill_fraction: float = 0.3
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
 
 
+#: frames whose moving bands are pooled for the blur fit
+BLUR_POOL_FRAMES = 8
+
+
 @nb.njit(cache=True, parallel=True)
-def _combine(
+def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
-    inv, s_lo, s_step, w_step, m_step, static_factor, static_margin, log_ratio, flows,
+    inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
+    static_factor, static_margin, blur_known, sweeps, moving_at, pitch, interval_ratio, banded,
 ):  # fmt: skip
-    """Per grid pixel: blur-corrected sweeps, flows, log ratio (see FlowModel.combine)."""
-    gh, gw = log_ratio.shape
+    """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
+
+    ``moving_at[p]``: the sweep (index units) above which the line clearly moves;
+    ``banded``: 1 where both patterns have a band (moving or not), else 0;
+    ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0).
+    Cells whose sweep is hidden in the line width (below ``lo_factor * line +
+    lo_margin``) or whose bands fill the interval get NaN.
+    """
+    gh, gw = interval_ratio.shape
     nu = u_of.shape[0]
     for i in nb.prange(gh):
         for j in range(gw):
-            log_ratio[i, j] = np.nan
-            flows[0, i, j] = np.nan
-            flows[1, i, j] = np.nan
+            interval_ratio[i, j] = np.nan
+            banded[i, j] = 0.0
+            for p in range(2):
+                sweeps[p, i, j] = np.nan
+                moving_at[p, i, j] = np.nan
             B0 = grids[0, 1, i, j]
             B1 = grids[1, 1, i, j]
             if not (B0 > 0.0 and B1 > 0.0):
                 continue
+            if np.isfinite(grids[0, 0, i, j]) and np.isfinite(grids[1, 0, i, j]):
+                banded[i, j] = 1.0
             u = 0.0
-            interval_ratio = math.log(B1 / B0)
+            ir = math.log(B1 / B0)
             if single:
-                t = (interval_ratio - u_lo) / u_step
+                t = (ir - u_lo) / u_step
                 if not (t >= 0.0 and t <= nu - 1):
                     continue
                 k = min(int(t), nu - 2)
                 u = u_of[k] + (t - k) * (u_of[k + 1] - u_of[k])
             ok = True
-            lf0 = 0.0
-            lf1 = 0.0
             for p in range(2):
                 m = grids[p, 0, i, j]
                 B = grids[p, 1, i, j]
@@ -89,24 +131,93 @@ def _combine(
                 line = line_px[p] * scale
                 # camera blur is isotropic: along a row it widens a slanted edge
                 sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
-                L = trilinear_at(inv, s_lo, s_step, w_step, m_step, sigma, line, m)
-                if not (L > static_factor * line + static_margin):
-                    ok = False  # no clear sweep: a static (or nearly static) line
+                r = grids[p, 2, i, j]
+                if m >= m_max:
+                    # far beyond line width and blur: the width at half height is the sweep
+                    L = m
+                elif m > line + 4.0 * sigma + 2.0:
+                    # a long band: its ramps are the line edge, its width alone decides
+                    # (the same answer as the joint inverse, for half the memory reads)
+                    L = trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
+                elif blur_known:
+                    # width and ramp together: a sweep shorter than the line shows in the ramps
+                    L = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
+                else:
+                    # a short sweep read with a guessed blur is biased: wait for the fit
+                    L = np.nan
+                if not (L > lo_factor * line + lo_margin):
+                    ok = False  # no measurable sweep: a static (or nearly static) line
                     break
                 if L + line + 2.0 * sigma > B:
                     ok = False  # swept line and its blur fill the interval: bands overlap
                     break
-                flows[p, i, j] = L / B * P
-                if p == 0:
-                    lf0 = math.log(L / B)
-                else:
-                    lf1 = math.log(L / B)
+                sweeps[p, i, j] = L / B
+                moving_at[p, i, j] = (static_factor * line + static_margin) / B
+                pitch[p, i, j] = P
             if not ok:
-                flows[0, i, j] = np.nan
-                flows[1, i, j] = np.nan
+                for p in range(2):
+                    sweeps[p, i, j] = np.nan
                 continue
-            # same projector: the sweeps are equal, the intervals carry the ratio
-            log_ratio[i, j] = interval_ratio if single else lf0 - lf1
+            interval_ratio[i, j] = ir
+
+
+@nb.njit(cache=True, parallel=True)
+def _pack(sweeps, banded, stack):
+    """``stack[..., p]``: sweep of pattern p where both are valid (else 0); ``[..., 2]``: mask;
+    ``[..., 3]``: where both patterns have bands."""
+    gh, gw = stack.shape[:2]
+    for i in nb.prange(gh):
+        for j in range(gw):
+            stack[i, j, 3] = banded[i, j]
+            a = sweeps[0, i, j]
+            b = sweeps[1, i, j]
+            if np.isfinite(a) and np.isfinite(b):
+                stack[i, j, 0] = a
+                stack[i, j, 1] = b
+                stack[i, j, 2] = 1.0
+            else:
+                stack[i, j, 0] = 0.0
+                stack[i, j, 1] = 0.0
+                stack[i, j, 2] = 0.0
+
+
+@nb.njit(cache=True, parallel=True)
+def _decide(
+    sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, share, log_ratio, flows
+):  # fmt: skip
+    """Moving test on the averaged sweeps, then the log ratio and the flows (projector px).
+
+    A cell far from the average around it is another surface (a static wall beside a
+    blade): the average must not carry it over the static limit.  The test is
+    two-sided, so it does not bias what passes.  Where only a few of the banded cells
+    around have a measurable sweep, the sweeps are at the floor of what can be
+    measured, and the few that passed are the ones whose noise pushed them up:
+    such cells are dropped (``share``).
+    """
+    gh, gw = log_ratio.shape
+    for i in nb.prange(gh):
+        for j in range(gw):
+            log_ratio[i, j] = np.nan
+            flows[0, i, j] = np.nan
+            flows[1, i, j] = np.nan
+            den = blurred[i, j, 2]
+            both = np.isfinite(sweeps[0, i, j]) and np.isfinite(sweeps[1, i, j])
+            if not (den > 0.0 and both):
+                continue
+            if den < share * blurred[i, j, 3]:
+                continue
+            ok = True
+            for p in range(2):
+                sm = blurred[i, j, p] / den
+                if not (sm > moving_at[p, i, j]) or abs(sweeps[p, i, j] - sm) >= outlier * sm:
+                    ok = False
+            if not ok:
+                continue
+            s0 = blurred[i, j, 0] / den
+            s1 = blurred[i, j, 1] / den
+            flows[0, i, j] = s0 * pitch[0, i, j]
+            flows[1, i, j] = s1 * pitch[1, i, j]
+            log_ratio[i, j] = interval_ratio[i, j] if single else math.log(s0 / s1)
 
 
 class FlowModel:
@@ -116,9 +227,13 @@ class FlowModel:
         self.rig = rig
         self.single = rig.single_projector
         self.pairs = rig.patterns
+        # the profile tables are loaded (or built once per machine, ~15 s) here, with
+        # the depth LUT, not on the first frame of a live capture
+        tables()
         #: per pattern, fitted blur model (a, b): sigma^2 = a + b * magnification^2
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
+        self._pool: list[list[np.ndarray]] = []
         self.frames = 0
         #: grid stride in camera pixels (set by the pipeline)
         self.stride = 1
@@ -171,22 +286,45 @@ class FlowModel:
             Per pattern, the blur sigma (camera px) at the median magnification.
         """
         tab = tables()
-        if not self._fitted or self.frames % params.blur_refit_frames == 0:
+        f = self.frames
+        # the optics do not change: refit on the pooled bands of the recent frames, often
+        # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
+        if not self._fitted or f in (1, 2, 4, 8) or f % params.blur_refit_frames == 0:
             self._refit_blur(grids)
         gh, gw = grids.shape[2:]
+        sweeps = np.empty((2, gh, gw), np.float32)
+        moving_at = np.empty((2, gh, gw), np.float32)
+        pitch = np.ones((2, gh, gw), np.float32)
+        interval_ratio = np.empty((gh, gw), np.float32)
+        banded = np.empty((gh, gw), np.float32)
+        _sweeps(
+            grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
+            self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
+            S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
+            params.measure_factor, params.measure_margin_px, params.static_factor,
+            params.static_margin_px, self._fitted, sweeps, moving_at, pitch, interval_ratio,
+            banded,
+        )  # fmt: skip
+        # Average the sweeps themselves over a few cells before any decision or log:
+        # a short sweep is noisy, and both thresholding it and taking its log bias it
+        # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
+        # Both patterns and their common mask in one 3-channel blur.
+        sigma = params.sweep_smoothing_px / max(1, self.stride)
+        stack = np.empty((gh, gw, 4), np.float32)
+        _pack(sweeps, banded, stack)
+        blurred = _gauss(stack, sigma) if sigma > 0 else stack
         log_ratio = np.empty((gh, gw), np.float32)
         flows = np.empty((2, gh, gw), np.float32)
-        _combine(
-            grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
-            self._u_lo, self._u_step, self._u_of, tab.inverse, S_AXIS[0], S_AXIS[1] - S_AXIS[0],
-            W_STEP, M_STEP, params.static_factor, params.static_margin_px, log_ratio, flows,
-        )  # fmt: skip
+        _decide(sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
+                params.sweep_outlier, params.measured_share, log_ratio, flows)  # fmt: skip
         self.frames += 1
         return log_ratio, [flows[0], flows[1]], list(self.blur_px)
 
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""
-        sub = grids[:, :, ::3, ::3]
+        # every third cell suffices on a large object; a small one (a ball) needs them all
+        k = 3 if np.count_nonzero(np.isfinite(grids[0, 0, ::3, ::3])) > 3000 else 1
+        sub = grids[:, :, ::k, ::k]
         with np.errstate(invalid="ignore", divide="ignore"):
             B0, B1 = sub[0, 1], sub[1, 1]
             if self.single:
@@ -197,7 +335,7 @@ class FlowModel:
                 m, B, r, slant = sub[p]
                 # only where the line spacing changes slowly (planes, gentle curves): on
                 # strongly curved parts the edges also carry the change of magnification
-                dB = np.abs(np.gradient(B, axis=1)) / (3 * self.stride)
+                dB = np.abs(np.gradient(B, axis=1)) / (k * self.stride)
                 m = np.where(dB < 0.1, m, np.nan)
                 slants.append(slant.ravel())
                 P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
@@ -206,12 +344,16 @@ class FlowModel:
                 rs.append(r.ravel())
                 lines.append(pat.width_px * scale.ravel())
                 scales.append(scale)
-            # one optics model for both patterns, fitted on the long bands of both: the
+            # one optics model for both patterns, fitted on the moving bands of both: the
             # same camera, and the projectors' defocus scales with magnification alike
-            fitted = fit_blur(
-                np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
-                np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants),
-            )  # fmt: skip
+            sample = [np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
+                      np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants)]
+            moving = np.isfinite(sample[0]) & (sample[0] > sample[2] + 1.0)
+            # pool the moving bands of the recent frames: a small object (a ball) has too
+            # few in one frame, and the fit of one frame is noisy (the optics do not change)
+            self._pool.append([v[moving] for v in sample])
+            self._pool = self._pool[-BLUR_POOL_FRAMES:]
+            fitted = fit_blur(*(np.concatenate(v) for v in zip(*self._pool, strict=True)))
             for p in range(2):
                 if fitted is not None:
                     self.blur[p] = fitted
@@ -246,8 +388,28 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
     den = _gauss(m, sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
-    out[~(mask | (den >= fill_fraction))] = np.nan
+    fill = den >= fill_fraction
+    if fill_fraction < 1.0:
+        # only holes are filled: data on both sides (left and right, or above and
+        # below) within the kernel.  Beside a convex edge (a blade, a ball's limb)
+        # a third of the kernel is valid too, and filling there grew the object.
+        # More than half the kernel valid is inside a straight edge, never beyond it.
+        fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
+    out[~(mask | fill)] = np.nan
     return out
+
+
+def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
+    """Pixels with a ``mask`` pixel within ``r`` on both sides along a row or a column."""
+    m = mask.astype(np.uint8)
+    row = np.ones((1, r + 1), np.uint8)
+    col = np.ones((r + 1, 1), np.uint8)
+    # one-sided dilations: the anchor at one end of the kernel looks only one way
+    left = cv2.dilate(m, row, anchor=(r, 0))
+    right = cv2.dilate(m, row, anchor=(0, 0))
+    up = cv2.dilate(m, col, anchor=(0, r))
+    down = cv2.dilate(m, col, anchor=(0, 0))
+    return ((left & right) | (up & down)).astype(bool)
 
 
 def smooth_log_ratio(

@@ -124,6 +124,7 @@ class DepthPipeline:
             np.empty((2, len(self._row_y)), np.int64),
         )
         self._full_size = (cam.width, cam.height)
+        self._full_scale = 255.0
 
     # ------------------------------------------------------------------ stages
 
@@ -156,7 +157,7 @@ class DepthPipeline:
             counts = np.empty((2, len(row_y)), np.int64)
         else:
             bands, counts = out
-        bd.detect_bands(image, weights, row_y, wins, self._scale(image), self._band_params,
+        bd.detect_bands(image, weights, row_y, wins, self._full_scale, self._band_params,
                         bands, counts, group)  # fmt: skip
         return bands, counts
 
@@ -190,10 +191,6 @@ class DepthPipeline:
             borderMode=cv2.BORDER_REPLICATE,
         )  # fmt: skip
 
-    @staticmethod
-    def _scale(image: np.ndarray) -> float:
-        return 65535.0 if image.dtype == np.uint16 else 255.0
-
     # ------------------------------------------------------------------ public
 
     def process(self, frame) -> FrameResult:
@@ -208,6 +205,9 @@ class DepthPipeline:
             )
         t0 = time.perf_counter()
         timings = {}
+        # a 12-bit camera's full scale is 4095, not the uint16 maximum
+        self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
+                                   else 255.0)  # fmt: skip
         weights = self._weights(image)
         if self._windows is None or self._frames % cfg.crosstalk_every == 0:
             # relearnt now and then: the first frame may have had merged or no bands

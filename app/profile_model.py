@@ -40,6 +40,14 @@ L_STEP = 0.5
 L_AXIS = np.arange(0.0, 48.0 + 1e-9, L_STEP)
 M_STEP = 0.25
 M_AXIS = np.arange(0.0, 52.0 + 1e-9, M_STEP)
+#: ramp axis of the joint inverse (camera px)
+R_STEP = 0.1
+R_AXIS = np.arange(0.0, 4.0 + 1e-9, R_STEP)
+#: noise of a measured ramp relative to that of a measured width (the ramp averages
+#: four crossings, two of them on the flatter foot of the edges)
+RAMP_NOISE = 0.7
+#: shortest sweep the joint inverse reports (a static line has no sweep to measure)
+L_MIN = 0.5
 PHASES = 4
 
 
@@ -154,6 +162,99 @@ def _invert_table(m_tab, l_axis, m_axis, out):
                     break
 
 
+@nb.njit(cache=True, parallel=True)
+def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out):
+    """Per (sigma, w): the sweep that best explains a measured (width, ramp) pair.
+
+    ``L = argmin (m - m(L))^2 + ((r - r(L)) / rho)^2``: long bands are decided by
+    their width (their ramps are the line edge, whatever the sweep), bands not
+    longer than the line by their ramps (their width is the line's), and bands
+    in between by both.  NaN where the tables have no data.
+    """
+    ns, nw, nl = m_tab.shape
+    nm = m_axis.shape[0]
+    nr = r_axis.shape[0]
+    fine = 10
+    for idx in nb.prange(ns * nw):
+        i = idx // nw
+        j = idx % nw
+        # the model curve (m(L), r(L)) sampled finely (linear between table rows)
+        k0 = 0
+        while k0 < nl and l_axis[k0] < l_min:
+            k0 += 1
+        n = (nl - 1 - k0) * fine + 1
+        cm = np.empty(n)
+        cr = np.empty(n)
+        cl = np.empty(n)
+        for k in range(k0, nl - 1):
+            for f in range(fine):
+                q = (k - k0) * fine + f
+                t = f / fine
+                cm[q] = m_tab[i, j, k] + t * (m_tab[i, j, k + 1] - m_tab[i, j, k])
+                cr[q] = r_tab[i, j, k] + t * (r_tab[i, j, k + 1] - r_tab[i, j, k])
+                cl[q] = l_axis[k] + t * (l_axis[k + 1] - l_axis[k])
+        cm[n - 1] = m_tab[i, j, nl - 1]
+        cr[n - 1] = r_tab[i, j, nl - 1]
+        cl[n - 1] = l_axis[nl - 1]
+        inv_rho2 = 1.0 / (rho * rho)
+        for a in range(nm):
+            mv = m_axis[a]
+            for b in range(nr):
+                rv = r_axis[b]
+                best = np.inf
+                bl = np.nan
+                for q in range(n):
+                    if not (np.isfinite(cm[q]) and np.isfinite(cr[q])):
+                        continue
+                    dm = mv - cm[q]
+                    dr = rv - cr[q]
+                    c = dm * dm + dr * dr * inv_rho2
+                    if c < best:
+                        best = c
+                        bl = cl[q]
+                out[i, j, a, b] = bl
+
+
+@nb.njit(cache=True, inline="always")
+def joint_at(table, s_lo, s_step, w_step, m_step, r_step, sigma, w, m, r):
+    """Sweep from (width ``m``, ramp ``r``) for ``sigma`` and line width ``w`` (4-linear).
+
+    Sigma is clamped to the table; NaN when ``w``, ``m`` or ``r`` is outside it.
+    """
+    n0, n1, n2, n3 = table.shape
+    a = min(max((sigma - s_lo) / s_step, 0.0), n0 - 1.0)
+    b = w / w_step
+    c = m / m_step
+    d = min(max(r / r_step, 0.0), n3 - 1.0)
+    if not (b >= 0.0 and c >= 0.0 and b <= n1 - 1 and c <= n2 - 1):
+        return np.nan
+    i = min(int(a), n0 - 2)
+    j = min(int(b), n1 - 2)
+    q = min(int(c), n2 - 2)
+    e = min(int(d), n3 - 2)
+    fa = a - i
+    fb = b - j
+    fc = c - q
+    fd = d - e
+    acc = 0.0
+    for di in range(2):
+        wa = fa if di else 1.0 - fa
+        for dj in range(2):
+            wb = fb if dj else 1.0 - fb
+            for dq in range(2):
+                wc = fc if dq else 1.0 - fc
+                for de in range(2):
+                    wd = fd if de else 1.0 - fd
+                    acc += wa * wb * wc * wd * table[i + di, j + dj, q + dq, e + de]
+    return acc
+
+
+@nb.njit(cache=True, parallel=True)
+def _joint_many(table, s_lo, s_step, sigma, w, m, r, out):
+    for k in nb.prange(m.shape[0]):
+        out[k] = joint_at(table, s_lo, s_step, W_STEP, M_STEP, R_STEP, sigma[k], w[k], m[k], r[k])
+
+
 @nb.njit(cache=True, inline="always")
 def trilinear_at(table, lo0, st0, step1, step2, x0, x1, x2):
     """One trilinear lookup; axis 0 from ``lo0`` in steps ``st0`` (clamped), the others from 0."""
@@ -210,6 +311,7 @@ class ProfileTables:
         try:
             with np.load(path) as d:
                 self.m, self.r, self.inverse = d["m"], d["r"], d["inverse"]
+                self.joint = d["joint"]
             return
         except (OSError, KeyError, ValueError):
             pass
@@ -219,10 +321,12 @@ class ProfileTables:
         _measure_table(S_AXIS, W_AXIS, L_AXIS, self.m, self.r)
         self.inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
         _invert_table(self.m, L_AXIS, M_AXIS, self.inverse)
+        self.joint = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS), len(R_AXIS)), np.float32)
+        _joint_table(self.m, self.r, L_AXIS, M_AXIS, R_AXIS, RAMP_NOISE, L_MIN, self.joint)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse)
+            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse, joint=self.joint)
             tmp.replace(path)
         except OSError:
             pass  # an unwritable cache only costs the rebuild
@@ -242,6 +346,15 @@ class ProfileTables:
         NaN where the sweep is hidden in the line width and blur (static lines).
         """
         return self._lookup(self.inverse, W_STEP, M_STEP, sigma, w, m)
+
+    def joint_length(self, m, r, w, sigma) -> np.ndarray:
+        """Sweep ``L`` from the measured width ``m`` and ramp ``r`` together (camera px)."""
+        shape = np.broadcast(m, r, w, sigma).shape
+        args = [np.ascontiguousarray(np.broadcast_to(v, shape), dtype=np.float64).ravel()
+                for v in (sigma, w, m, r)]  # fmt: skip
+        out = np.empty(args[0].size)
+        _joint_many(self.joint, S_AXIS[0], S_AXIS[1] - S_AXIS[0], *args, out)
+        return out.reshape(shape)
 
     def measured_width(self, L, w, sigma) -> np.ndarray:
         """Forward model: the width at half height the detector reports."""
@@ -263,14 +376,21 @@ def tables() -> ProfileTables:
     return _TABLES
 
 
-def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 3000):
-    """Fit the blur model ``sigma^2 = a + b * scale^2`` to measured bands.
+def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: int = 120):
+    """Fit the blur model ``sigma^2 = a k^2 + b * scale^2`` to measured bands.
 
     Camera blur and pixel size (``a``) are fixed in camera pixels; projector
     defocus (``b``, in projector px^2) scales with the local magnification
-    ``scale`` like the line width.  For each candidate the measured widths are
-    corrected to sweeps and the ramps those sweeps imply are compared with the
-    measured ramps; the candidate with the smallest median mismatch wins.
+    ``scale`` like the line width.  Along a row the camera blur of a line of
+    slant ``s`` is wider by ``k = sqrt(1 + s^2)``.
+
+    Every moving band is solved on its own first: the sigma at which the
+    sweep its width implies (:meth:`ProfileTables.true_length`) also predicts
+    its measured ramp.  Short bands (sweep within a few sigma of the line
+    width) count as much as long ones — their ramps depend on the sweep, and
+    the tables model that — so frames of short bands only (a fan at 1 ms, a
+    ball at 5 ms) get their blur too.  A robust straight-line fit of the
+    per-band sigma^2 against the magnification^2 then gives ``(a, b)``.
 
     Parameters
     ----------
@@ -278,39 +398,66 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 3000):
         Measured width at half height, ramp, line width (camera px) and
         magnification per pixel.
     slant : numpy.ndarray, optional
-        Slant of the lines (columns per row): along a row the camera blur of a
-        slanted edge is wider by ``sqrt(1 + slant^2)``.
+        Slant of the lines (columns per row).
 
     Returns
     -------
-    (a, b) : tuple of float, or None when there are too few bands.
+    (a, b) : tuple of float, or None when there are too few moving bands.
     """
-    # clearly moving bands only: static lines say nothing about the sweep model
     ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & np.isfinite(scale)
-    ok &= m > 2.0 * line + 4.0  # long: their ramps are the line edge blurred, nothing else
+    ok &= m > line + 1.0  # moving: a static line's ramp says nothing about its sweep
     idx = np.flatnonzero(ok)
-    if idx.size < 300:  # too few clearly moving bands to tell the blur
+    if idx.size < min_bands:
         return None
     idx = idx[:: max(1, idx.size // max_pixels)]
     m, r, line, s2 = m.ravel()[idx], r.ravel()[idx], line.ravel()[idx], scale.ravel()[idx] ** 2
-    k2 = 1.0 if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
+    k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
-    best, best_cost = None, np.inf
-    spread = np.ptp(s2) > 0.15 * np.mean(s2)
-    a_grid = np.geomspace(0.09, S_AXIS[-1] ** 2, 24)
-    b_grid = np.concatenate([[0.0], np.geomspace(0.02, 4.0, 12)]) if spread else [0.0]
-    for b in b_grid:
-        for a in a_grid:
-            sigma = np.sqrt(a * k2 + b * s2)
-            if np.max(sigma) > S_AXIS[-1]:
-                continue
-            L = t.true_length(m, line, sigma)
-            pred = t.ramp(L, line, sigma)
-            res = np.abs(pred - r)
-            fin = np.isfinite(res)
-            if fin.sum() < 0.3 * res.size:
-                continue
-            cost = np.median(res[fin])
-            if cost < best_cost:
-                best, best_cost = (float(a), float(b)), cost
-    return best
+    # per band: the ramp mismatch as a function of sigma, and its sign change
+    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
+    res = np.empty((sig.size, m.size))
+    for i, sg in enumerate(sig):
+        L = t.true_length(m, line, np.full_like(m, sg))
+        res[i] = t.ramp(L, line, np.full_like(m, sg)) - r
+    # the predicted ramp grows with sigma: the root is the first sign change to >= 0
+    fin = np.isfinite(res)
+    pos = fin & (res >= 0)
+    first = np.argmax(pos, axis=0)
+    has = pos.any(axis=0) & (first > 0)
+    cols = np.flatnonzero(has)
+    j = first[cols]
+    r0, r1 = res[j - 1, cols], res[j, cols]
+    good = np.isfinite(r0) & (r1 > r0)
+    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    if cols.size < min_bands // 2:
+        return None
+    sigma = sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
+    # only bands whose width decides their sweep at that sigma: for a sweep within
+    # the line width the width is the line's, and a smaller sigma would fake a sweep
+    L = t.true_length(m[cols], line[cols], sigma)
+    keep = L > line[cols] + 1.5 * sigma
+    cols, sigma = cols[keep], sigma[keep]
+    if cols.size < min_bands // 2:
+        return None
+    y = sigma**2
+    xa, xb = k2[cols], s2[cols]
+    # robust least squares of y = a xa + b xb (Tukey reweighting)
+    w = np.ones_like(y)
+    a, b = float(np.median(y)), 0.0
+    spread = np.ptp(xb) > 0.15 * np.mean(xb)
+    for _ in range(10):
+        if spread:
+            A = np.stack([xa, xb], axis=1) * w[:, None]
+            sol, *_ = np.linalg.lstsq(A, y * w, rcond=None)
+            a, b = float(sol[0]), float(sol[1])
+        else:
+            a, b = float(np.sum(w * w * y * xa) / np.sum(w * w * xa * xa)), 0.0
+        if b < 0.0:  # defocus cannot be negative: camera term only
+            b = 0.0
+            a = float(np.sum(w * w * y * xa) / np.sum(w * w * xa * xa))
+        e = y - a * xa - b * xb
+        scale_e = 1.4826 * float(np.median(np.abs(e))) + 1e-6
+        u = e / (4.685 * scale_e)
+        w = np.where(np.abs(u) < 1, 1 - u * u, 0.0)
+    a = float(np.clip(a, 0.05, S_AXIS[-1] ** 2))
+    return a, float(b)

@@ -160,6 +160,15 @@ class Rig:
 # ----------------------------------------------------------------------------- parsing
 
 
+def short_json(value: Any, limit: int = 40) -> str:
+    """A JSON value for a one-line error message, cut to a readable length."""
+    try:
+        text = json.dumps(value)
+    except (RecursionError, ValueError, TypeError):
+        return f"a deeply nested or huge {type(value).__name__}"
+    return text if len(text) <= limit else f"{text[: limit // 2]}... ({len(text)} characters)"
+
+
 class _Reader:
     """Strict reader that names ``file: field`` in every error."""
 
@@ -183,25 +192,33 @@ class _Reader:
 
     def number(self, value: Any, where: str, positive: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(where, f"expected a number, got {json.dumps(value)}")
-        if not math.isfinite(value):
+            raise self.fail(where, f"expected a number, got {short_json(value)}")
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an integer beyond float range
+            finite = False
+        if not finite:
             raise self.fail(where, "expected a finite number")
         if positive and value <= 0:
             raise self.fail(where, f"expected a positive number, got {value}")
         return float(value)
 
-    def integer(self, value: Any, where: str, minimum: int = 1) -> int:
+    def integer(
+        self, value: Any, where: str, minimum: int = 1, maximum: int | None = None
+    ) -> int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(where, f"expected an integer, got {json.dumps(value)}")
+            raise self.fail(where, f"expected an integer, got {short_json(value)}")
         if value < minimum:
-            raise self.fail(where, f"expected an integer >= {minimum}, got {value}")
+            raise self.fail(where, f"expected an integer >= {minimum}, got {short_json(value)}")
+        if maximum is not None and value > maximum:
+            raise self.fail(where, f"expected an integer <= {maximum}, got {short_json(value)}")
         return value
 
     def matrix(self, value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
         expected = "x".join(map(str, shape))
         try:
             arr = np.array(value, dtype=float)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError, RecursionError):
             raise self.fail(where, f"expected a {expected} matrix of numbers") from None
         if arr.shape != shape:
             got = "x".join(map(str, arr.shape)) if arr.ndim else "a scalar"
@@ -212,25 +229,33 @@ class _Reader:
 
     def string(self, value: Any, where: str, choices: tuple[str, ...] | None = None) -> str:
         if not isinstance(value, str):
-            raise self.fail(where, f"expected a string, got {json.dumps(value)}")
+            raise self.fail(where, f"expected a string, got {short_json(value)}")
         if choices is not None and value not in choices:
             raise self.fail(where, f"expected one of {', '.join(choices)}, got {value!r}")
         return value
 
 
 def _parse_intrinsics(rd: _Reader, d: dict, where: str):
-    width = rd.integer(d["width"], f"{where}.width")
-    height = rd.integer(d["height"], f"{where}.height")
+    width = rd.integer(d["width"], f"{where}.width", maximum=MAX_IMAGE_SIDE)
+    height = rd.integer(d["height"], f"{where}.height", maximum=MAX_IMAGE_SIDE)
     K = rd.matrix(d["K"], f"{where}.K", (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1]):
         raise rd.fail(
             f"{where}.K", "expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"
         )
+    if np.abs(K).max() > MAX_FOCAL_PX:
+        raise rd.fail(f"{where}.K", f"expected focal lengths and centre within {MAX_FOCAL_PX:g} px")
     dist_raw = d["dist"]
     if not isinstance(dist_raw, list) or len(dist_raw) not in DIST_LENGTHS:
         n = len(dist_raw) if isinstance(dist_raw, list) else "not a list"
         raise rd.fail(f"{where}.dist", f"expected 5 coefficients (k1, k2, p1, p2, k3), got {n}")
     dist = rd.matrix(dist_raw, f"{where}.dist", (len(dist_raw),))
+    if np.abs(dist).max(initial=0.0) > MAX_DISTORTION:
+        raise rd.fail(
+            f"{where}.dist",
+            f"coefficients up to {np.abs(dist).max():.3g}: expected |coefficient| <= "
+            f"{MAX_DISTORTION:g} (a calibration that failed?)",
+        )
     return width, height, K, dist
 
 
@@ -300,9 +325,12 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
             raise rd.fail(f"{where}.name", "expected a non-empty name without '/'")
         width, height, K, dist = _parse_intrinsics(rd, pd, where)
         R = rd.matrix(pd["R"], f"{where}.R", (3, 3))
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        rotation = np.abs(R).max() <= 1 + 1e-5 and np.allclose(R @ R.T, np.eye(3), atol=1e-5)
+        if not rotation or np.linalg.det(R) < 0:
             raise rd.fail(f"{where}.R", "expected a rotation matrix (orthonormal, det +1)")
         t = rd.matrix(pd["t"], f"{where}.t", (3,))
+        if np.abs(t).max() > MAX_BASELINE_M:
+            raise rd.fail(f"{where}.t", f"expected a position within {MAX_BASELINE_M:g} m")
         pats = pd["patterns"]
         want = 2 if len(projs) == 1 else 1
         if not isinstance(pats, list) or len(pats) != want:
@@ -324,17 +352,50 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     return Rig(camera, tuple(projectors), source)
 
 
+#: largest JSON file read (rig files and recording.json are far smaller)
+MAX_JSON_BYTES = 256 * 2**20
+#: largest camera or projector image side accepted, in pixels
+MAX_IMAGE_SIDE = 16384
+#: plausibility bounds: K entries (px), distortion coefficients, projector position (m)
+MAX_FOCAL_PX = 1e6
+MAX_DISTORTION = 1e3
+MAX_BASELINE_M = 100.0
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a JSON number")
+
+
 def _read_json(path: Path) -> Any:
     try:
-        text = path.read_text()
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_JSON_BYTES + 1)
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: expected a JSON file, found a folder") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    if len(data) > MAX_JSON_BYTES:
+        raise ConfigError(
+            f"{path}: larger than {MAX_JSON_BYTES // 2**20} MiB, not a lightflow file"
+        )
     try:
-        return json.loads(text)
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8 JSON"
+        ) from None
+    if text.startswith("\ufeff"):
+        raise ConfigError(f"{path}: starts with a byte-order mark; save it as UTF-8 without BOM")
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: JSON nested too deeply") from None
+    except ValueError as exc:  # NaN/Infinity, or an integer of thousands of digits
+        raise ConfigError(f"{path}: not valid JSON: {str(exc).splitlines()[0]}") from None
 
 
 def load_rig(path: str | Path) -> Rig:

@@ -133,6 +133,9 @@ class Runner:
     count_gaps : bool
         Count gaps in ``frame.index`` as frames the camera lost (not for a
         replay, whose gaps are bad frames it lists itself).
+    on_warning : callable, optional
+        ``on_warning(text)`` once when the recorder falls behind the camera
+        (its queue half full), with the rate needed and the rate achieved.
 
     Examples
     --------
@@ -160,6 +163,7 @@ class Runner:
         recorder=None,
         max_frames: int | None = None,
         count_gaps: bool = True,
+        on_warning: Callable[[str], None] | None = None,
     ):
         self.camera = camera
         self.pipeline = pipeline
@@ -170,6 +174,8 @@ class Runner:
         self.recorder = recorder
         self.max_frames = max_frames
         self.count_gaps = count_gaps
+        self.on_warning = on_warning
+        self._recorder_warned = False
         self.frames_q = DropOldestQueue(queue_size, lossless, "frames")
         self.results_q = DropOldestQueue(queue_size, lossless, "results")
         self._stats = RunStats()
@@ -318,6 +324,18 @@ class Runner:
         with self._lock:
             self._stats.extra["recorder_written"] = float(rs["written"])
             self._stats.extra["recorder_dropped"] = float(rs["dropped"])
+            self._stats.extra["recorder_queued"] = float(rs["queued"])
+            needed = self._stats.mib_per_s
+        capacity = rs.get("capacity", 0)
+        if capacity and rs["queued"] > capacity / 2 and not self._recorder_warned:
+            self._recorder_warned = True
+            elapsed = time.perf_counter() - self._t0
+            achieved = rs["mib_written"] / elapsed if elapsed > 0 else 0.0
+            if self.on_warning is not None:
+                self.on_warning(
+                    f"the recorder is falling behind: the camera delivers {needed:.0f} MiB/s, "
+                    f"the disk took {achieved:.0f} MiB/s so far ({rs['queued']} frames waiting)"
+                )
 
     def _update_drops(self) -> None:
         with self._lock:

@@ -3,6 +3,17 @@
 On a terminal the line is rewritten in place (``\\r``) at most a few times a
 second; when stderr is a file or a pipe (CI logs, ``2> log``) a full line is
 printed every few seconds instead, so logs stay readable.
+
+Two shares of pixels with a depth, named apart everywhere (status line,
+summary, Rerun, eval):
+
+depth on image
+    Of all camera pixels, the share that got a depth in the last frame.  Known
+    in every run (``FrameResult.coverage``).
+coverage
+    Of the pixels on a moving object that every projector lights, the share
+    that got a depth.  Needs ground truth (simulated recordings): ``lightflow
+    eval``, the demo's accuracy line, and Rerun's green coverage series.
 """
 
 from __future__ import annotations
@@ -17,6 +28,8 @@ from lightflow.app.results import RunStats
 
 TTY_INTERVAL_S = 0.2
 LOG_INTERVAL_S = 5.0
+#: the name of ``stats.extra["coverage"]`` (``FrameResult.coverage``) wherever it is shown
+DEPTH_ON_IMAGE = "depth on image"
 #: camera statistics worth showing, as (key in stats.extra, label)
 CAMERA_FIELDS = (
     ("camera_underruns", "underruns"),
@@ -24,6 +37,8 @@ CAMERA_FIELDS = (
     ("camera_missing_packets", "missing packets"),
     ("camera_missing_frames", "missing frames"),
     ("camera_bad_buffers", "bad buffers"),
+    ("camera_dropped_in_driver", "dropped by the driver (consumer too slow)"),
+    ("camera_discarded_at_stop", "not taken at stop"),
 )
 
 
@@ -33,7 +48,8 @@ def format_status(stats: RunStats, total: int | None = None) -> str:
     parts = [done, f"{stats.fps:5.1f} fps", f"{stats.mib_per_s:6.1f} MiB/s"]
     parts.append(f"latency {stats.latency_ms:4.0f} ms")
     if "coverage" in stats.extra:
-        parts.append(f"coverage {100 * stats.extra['coverage']:3.0f}%")
+        # not eval's "coverage" (moving lit pixels with depth): see the module docstring
+        parts.append(f"{DEPTH_ON_IMAGE} {100 * stats.extra['coverage']:3.0f}%")
     e = stats.extra
     parts.append(
         f"drops {int(e.get('dropped_frames_queue', 0))} frames/"
@@ -62,6 +78,11 @@ def format_summary(
         f"{int(stats.extra.get('dropped_results_queue', 0))}); "
         f"lost by the camera {stats.camera_lost}; bad frames {len(bad)}"
     ]
+    if "coverage" in stats.extra:
+        lines.append(
+            f"{DEPTH_ON_IMAGE} (share of all camera pixels with a depth, last frame): "
+            f"{100 * stats.extra['coverage']:.1f}%"
+        )
     for key, label in CAMERA_FIELDS:
         if stats.extra.get(key):
             lines.append(f"camera {label}: {int(stats.extra[key])}")

@@ -1,4 +1,7 @@
-"""Intrinsic and camera-to-projector calibration from corner correspondences (pure OpenCV).
+"""Intrinsic and camera-to-projector calibration from corner correspondences.
+
+OpenCV gives the initial per-device calibrations; SciPy's sparse robust
+least squares refines them jointly.
 
 Projectors are calibrated as inverse cameras: their "image points" are the
 board corners mapped into projector pixels (see :mod:`.corners`).
@@ -201,13 +204,15 @@ def joint_refine(
     projectors: Sequence[ProjectorViews],
     n_dist: int = 4,
     iterations: int = 50,
+    outlier_px: float = 1.0,
 ) -> JointResult:
     """Refine everything together: one board pose per view shared by all devices.
 
-    A Levenberg-Marquardt fit of camera intrinsics, each projector's intrinsics
-    and motion, and the board poses, to the corners seen by the camera and
-    mapped into the projectors.  Sharing the board poses lets the camera's
-    observations constrain the projectors' intrinsics (and vice versa).
+    A sparse, robust least-squares fit (``scipy.optimize.least_squares``, trust
+    region with a soft-L1 loss) of camera intrinsics, each projector's
+    intrinsics and motion, and the board poses, to the corners seen by the
+    camera and mapped into the projectors.  Sharing the board poses lets the
+    camera's observations constrain the projectors' intrinsics (and vice versa).
 
     Parameters
     ----------
@@ -223,10 +228,23 @@ def joint_refine(
     n_dist : int
         Distortion coefficients refined (4: k1, k2, p1, p2; the rest stay fixed).
     iterations : int
+        Jacobian evaluations allowed per parameter group (``max_nfev`` scales with it).
+    outlier_px : float
+        Residual (pixels) beyond which the soft-L1 loss grows linearly, so a few
+        badly decoded corners cannot pull the fit.
+
+    Returns
+    -------
+    JointResult
+        RMS errors are of the plain (not robustified) residuals.
     """
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
     from lightflow.app.geometry import project_points
 
     obj = np.asarray(object_points, float)
+    n = len(obj)
     n_views = len(camera_points)
     ni = 4 + n_dist
     cam_obs = np.concatenate([np.asarray(c, float).reshape(-1, 2) for c in camera_points])
@@ -235,8 +253,13 @@ def joint_refine(
         p0 += [_intr_vec(pj.K, pj.dist, n_dist), cv2.Rodrigues(pj.R)[0].ravel(), pj.t.ravel()]
     for rv, tv in zip(board_rvecs, board_tvecs, strict=True):
         p0 += [np.ravel(rv), np.ravel(tv)]
-    p0 = np.concatenate(p0)
+    p0 = np.concatenate(p0).astype(float)
     off_pose = ni + len(projectors) * (ni + 6)
+    proj_obs = [
+        np.concatenate([np.asarray(q, float).reshape(-1, 2) for _, _, q in pj.views])
+        if pj.views else np.zeros((0, 2))
+        for pj in projectors
+    ]
 
     def unpack(p):
         Kc, dc = _intr_mat(p[:ni], camera.dist, n_dist)
@@ -254,42 +277,40 @@ def joint_refine(
         Kc, dc, projs, poses = unpack(p)
         Xc = np.stack([obj @ R.T + t for R, t in poses])  # (views, n, 3)
         res = [(project_points(Kc, dc, Xc).reshape(-1, 2) - cam_obs).ravel()]
-        for (K, d, R, t), pj in zip(projs, projectors, strict=True):
+        for (K, d, R, t), pj, obs in zip(projs, projectors, proj_obs, strict=True):
+            if not pj.views:
+                continue
             pts = np.concatenate([Xc[i][m] for i, m, _ in pj.views]) @ R.T + t
-            obs = np.concatenate([np.asarray(q, float).reshape(-1, 2) for _, _, q in pj.views])
             res.append((project_points(K, d, pts) - obs).ravel())
         return np.concatenate(res)
 
-    p = p0.copy()
+    # Which parameters each residual depends on: its device's intrinsics (and
+    # motion, for a projector) and the board pose of its view.  Finite
+    # differences then cost a few residual evaluations instead of one per parameter.
+    n_res = 2 * n * n_views + sum(2 * len(o) for o in proj_obs)
+    sparsity = lil_matrix((n_res, len(p0)), dtype=np.int8)
+    for i in range(n_views):
+        rows = slice(2 * n * i, 2 * n * (i + 1))
+        sparsity[rows, :ni] = 1
+        sparsity[rows, off_pose + 6 * i : off_pose + 6 * i + 6] = 1
+    row = 2 * n * n_views
+    for j, pj in enumerate(projectors):
+        o = ni + j * (ni + 6)
+        for i, m, _ in pj.views:
+            k = 2 * int(np.count_nonzero(m))
+            sparsity[row : row + k, o : o + ni + 6] = 1
+            sparsity[row : row + k, off_pose + 6 * i : off_pose + 6 * i + 6] = 1
+            row += k
+
+    fit = least_squares(
+        residuals, p0, jac_sparsity=sparsity, method="trf", loss="soft_l1",
+        f_scale=outlier_px, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+        max_nfev=iterations * 20,
+    )
+    p = fit.x
     r = residuals(p)
-    cost = r @ r
-    lam = 1e-3
-    for _ in range(iterations):
-        J = np.empty((len(r), len(p)))
-        for k in range(len(p)):
-            h = 1e-6 * max(1.0, abs(p[k]))
-            q = p.copy()
-            q[k] += h
-            J[:, k] = (residuals(q) - r) / h
-        A = J.T @ J
-        g = J.T @ r
-        improved = False
-        for _ in range(10):
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
-            q = p + step
-            rq = residuals(q)
-            cq = rq @ rq
-            if cq < cost:
-                improved = True
-                rel = (cost - cq) / cost
-                p, r, cost = q, rq, cq
-                lam = max(lam / 10, 1e-9)
-                break
-            lam *= 10
-        if not improved or rel < 1e-10:
-            break
+    cost = float(r @ r)
     Kc, dc, projs, _ = unpack(p)
-    n = len(obj)
     cam_res = r[: n_views * n * 2].reshape(n_views, n, 2)
     cam_pv = np.sqrt((cam_res**2).sum(-1).mean(-1))
     proj_pv = []

@@ -3,9 +3,15 @@
 Aravis is reached through PyGObject and imported lazily, so the rest of
 lightflow works on machines without it.
 
-Buffer lifetime: Aravis fills a pool of at least 8 buffers in its own stream
-thread.  :meth:`AravisCamera.frames` pops one, copies the image out of it, and
-only then pushes it back to the pool, so a yielded image is never overwritten.
+Buffer lifetime: Aravis fills a pool of buffers in its own stream thread; the
+pool holds about ``buffer_s`` seconds of frames (at least 8, capped by
+``max_buffer_mib``).  One acquisition thread per camera owns the stream: it
+only pops a buffer, copies the image bytes out and pushes the buffer straight
+back, so the pool never starves however slow the consumer is.  The copies wait
+in a memory-capped queue (``max_pending_mib``) for :meth:`AravisCamera.frames`,
+which converts them on the consumer's thread.  A frame dropped from that queue
+(the consumer fell behind by more than the cap) is counted in
+``stats()["dropped_in_driver"]``, never silently.
 
 Lost cameras: when no buffer arrives for ``lost_after_s`` seconds the driver
 asks the control channel directly (an uncached register read); if that fails
@@ -16,6 +22,7 @@ raises :class:`~lightflow.app.errors.DeviceLostError`.
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 from collections.abc import Iterator
@@ -27,8 +34,14 @@ import numpy as np
 
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers.base import Camera, Frame
+from lightflow.drivers.pixfmt import packed_row_bytes, packing, significant_bits, unpack
 
 MIN_BUFFERS = 8
+#: seconds of frames the Aravis buffer pool holds by default
+BUFFER_SECONDS = 1.0
+#: memory caps (MiB) of the buffer pool and of the queue of copied-out frames
+MAX_BUFFER_MIB = 512
+MAX_PENDING_MIB = 1024
 _STAT_NAMES = {"n_completed_buffers": "completed"}
 POP_TIMEOUT_S = 0.1
 # Bootstrap register 0 (GigE Vision version / USB3 Vision GenCP version): every
@@ -43,7 +56,11 @@ PREFERRED_FORMATS = (
     "BayerRG16", "BayerGR16", "BayerGB16", "BayerBG16",
     "BayerRG12", "BayerGR12", "BayerGB12", "BayerBG12",
     "BayerRG10", "BayerGR10", "BayerGB10", "BayerBG10",
-    "Mono8", "Mono16", "Mono12", "Mono10",
+    "BayerRG12p", "BayerGR12p", "BayerGB12p", "BayerBG12p",
+    "BayerRG12Packed", "BayerGR12Packed", "BayerGB12Packed", "BayerBG12Packed",
+    "BayerRG10p", "BayerGR10p", "BayerGB10p", "BayerBG10p",
+    "Mono8", "Mono16", "Mono12", "Mono12p", "Mono12Packed", "Mono10", "Mono10p",
+    "Mono10Packed",
 )  # fmt: skip
 
 # GenICam names the colour of the first two pixels of the first row; OpenCV
@@ -69,6 +86,8 @@ def _layout(name: str) -> tuple[str, int] | None:
     """
     if name in ("RGB8", "RGB8Packed"):
         return "rgb", 1
+    if packing(name) is not None:
+        name = name.removesuffix("Packed").removesuffix("p")  # the unpacked twin
     for depth, size in (("8", 1), ("10", 2), ("12", 2), ("16", 2)):
         if name == f"Mono{depth}":
             return "mono", size
@@ -98,14 +117,32 @@ def convert_image(
     -------
     numpy.ndarray
         A new, writable array: ``uint8`` for 8-bit formats, ``uint16`` (raw
-        10/12/16-bit values, not rescaled) otherwise.  Mono is replicated to
-        three channels; Bayer mosaics are demosaiced with OpenCV.
+        10/12/16-bit values, not rescaled; packed formats unpacked) otherwise.
+        Mono is replicated to three channels; Bayer mosaics are demosaiced
+        with OpenCV.
     """
     layout = _layout(pixel_format)
     if layout is None:
         raise DriverError(f"pixel format {pixel_format} is not supported")
     kind, size = layout
     channels = 3 if kind == "rgb" else 1
+    packed = packing(pixel_format)
+    if packed is not None:
+        bits = significant_bits(pixel_format)
+        row_bytes = packed_row_bytes(width, bits, packed)
+        stride = row_bytes + row_padding
+        if len(data) < stride * (height - 1) + row_bytes:
+            raise DriverError(
+                f"{pixel_format} image of {width}x{height} needs {stride * height} bytes, "
+                f"got {len(data)}"
+            )
+        raw = np.frombuffer(data, dtype=np.uint8, count=min(len(data), stride * height))
+        if raw.size < stride * height:
+            raw = np.concatenate([raw, np.zeros(stride * height - raw.size, np.uint8)])
+        mono = unpack(raw.reshape(height, stride)[:, :row_bytes], width, bits, packed)
+        if kind == "mono":
+            return cv2.cvtColor(mono, cv2.COLOR_GRAY2RGB)
+        return cv2.cvtColor(mono, _BAYER_CODES[kind])
     dtype = np.uint8 if size == 1 else np.dtype("<u2")
     stride = width * channels * size + row_padding
     if len(data) < stride * (height - 1) + width * channels * size:
@@ -200,8 +237,14 @@ class AravisCamera(Camera):
     pixel_format : str, optional
         GenICam pixel format to use; by default the first of
         :data:`PREFERRED_FORMATS` the camera offers.
-    n_buffers : int
-        Stream buffers in the pool (at least 8).
+    n_buffers : int, optional
+        Stream buffers in the pool (at least 8).  By default the pool holds
+        ``buffer_s`` seconds of frames at the camera's frame rate.
+    buffer_s : float
+        Seconds of frames in the default buffer pool.
+    max_buffer_mib, max_pending_mib : float
+        Memory caps of the buffer pool and of the queue of copied-out frames
+        waiting for the consumer.
     lost_after_s : float
         Seconds without a buffer after which the control channel is checked.
     probe_timeout_s : float
@@ -214,14 +257,30 @@ class AravisCamera(Camera):
         self,
         device: str,
         pixel_format: str | None = None,
-        n_buffers: int = MIN_BUFFERS,
+        n_buffers: int | None = None,
         lost_after_s: float = 1.0,
         probe_timeout_s: float = 1.0,
+        buffer_s: float = BUFFER_SECONDS,
+        max_buffer_mib: float = MAX_BUFFER_MIB,
+        max_pending_mib: float = MAX_PENDING_MIB,
     ) -> None:
         self.device = device
         self.uri = f"aravis:{device}"
         self.requested_format = pixel_format
-        self.n_buffers = max(MIN_BUFFERS, int(n_buffers))
+        self.n_buffers = None if n_buffers is None else max(MIN_BUFFERS, int(n_buffers))
+        self.buffer_s = float(buffer_s)
+        self.max_buffer_mib = float(max_buffer_mib)
+        self.max_pending_mib = float(max_pending_mib)
+        #: buffers in the pool of the current (or last) stream
+        self.pool_size = 0
+        self._pending: collections.deque = collections.deque()
+        self._pending_bytes = 0
+        self._pending_cond = threading.Condition()
+        self._acq_done = False
+        self._acq_error: BaseException | None = None
+        self._acq_thread: threading.Thread | None = None
+        self._dropped_in_driver = 0
+        self._discarded_at_stop = 0
         self.lost_after_s = float(lost_after_s)
         self.probe_timeout_s = float(probe_timeout_s)
         self.pixel_format = ""
@@ -334,8 +393,10 @@ class AravisCamera(Camera):
         self._probe = self._stream = self._dev = self._cam = None
         self.released.clear()
         if dead:
+            # daemon: freeing a dead camera can take Aravis seconds of retries,
+            # which must not keep the process alive after it has reported the loss
             threading.Thread(target=_release, args=(owned, self.released),
-                             name=f"{self.uri} release").start()
+                             name=f"{self.uri} release", daemon=True).start()
         else:
             _release(owned, self.released)
 
@@ -470,6 +531,8 @@ class AravisCamera(Camera):
     def stop(self) -> None:
         """Make a running :meth:`frames` end within about 0.1 s (thread-safe)."""
         self._stop.set()
+        with self._pending_cond:
+            self._pending_cond.notify_all()
 
     def frames(self) -> Iterator[Frame]:
         """Stream frames until :meth:`stop` or :meth:`close`.
@@ -489,8 +552,16 @@ class AravisCamera(Camera):
         self._streaming_thread = threading.get_ident()
         try:
             self._start_stream()
-            yield from self._pop_loop()
+            self._acq_thread = threading.Thread(
+                target=self._acquire, name=f"{self.uri} acquisition", daemon=True
+            )
+            self._acq_thread.start()
+            yield from self._deliver()
         finally:
+            self._stop.set()
+            if self._acq_thread is not None:
+                self._acq_thread.join()  # it leaves within one pop timeout
+                self._acq_thread = None
             self._end_stream()
             self._streaming_thread = None
             self._idle.set()
@@ -506,54 +577,119 @@ class AravisCamera(Camera):
             # Kernel socket buffer sized to one frame: fewer lost packets at high rates.
             stream.set_property("socket-buffer", Aravis.GvStreamSocketBuffer.AUTO)
         payload = self._call("payload", self._cam.get_payload)
-        for _ in range(self.n_buffers):
+        self.pool_size = self._pool_size(payload)
+        for _ in range(self.pool_size):
             stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+        with self._pending_cond:
+            self._pending.clear()
+            self._pending_bytes = 0
+            self._acq_done = False
+            self._acq_error = None
+        self._dropped_in_driver = 0
+        self._discarded_at_stop = 0
         self._stream = stream
         self._call("start acquisition", self._cam.start_acquisition)
 
-    def _pop_loop(self) -> Iterator[Frame]:
-        # No local reference to the stream: a DeviceLostError traceback keeps
-        # this frame alive, and close() must be what frees the stream.
-        success = _aravis().BufferStatus.SUCCESS
-        timeouts_for_lost = max(1, math.ceil(self.lost_after_s / POP_TIMEOUT_S))
-        idle = 0
+    def _pool_size(self, payload: int) -> int:
+        """Buffers for ``buffer_s`` seconds of frames, at least 8, within ``max_buffer_mib``."""
+        if self.n_buffers is not None:
+            return self.n_buffers
+        fps = 30.0
+        if self._cam.is_frame_rate_available():
+            try:
+                fps = float(self._cam.get_frame_rate()) or fps
+            except _glib_error():
+                pass
+        wanted = math.ceil(fps * self.buffer_s)
+        cap = int(self.max_buffer_mib * 2**20 // max(1, payload))
+        return max(MIN_BUFFERS, min(wanted, cap))
+
+    def _acquire(self) -> None:
+        """The acquisition thread: pop, copy out, push back; nothing else.
+
+        No local reference to the stream: a DeviceLostError traceback keeps
+        this frame alive, and close() must be what frees the stream.
+        """
+        try:
+            success = _aravis().BufferStatus.SUCCESS
+            timeouts_for_lost = max(1, math.ceil(self.lost_after_s / POP_TIMEOUT_S))
+            cap = self.max_pending_mib * 2**20
+            idle = 0
+            while not self._stop.is_set():
+                if self._control_lost.is_set():
+                    raise self._lost("Aravis lost the control channel")
+                buffer = self._stream.timeout_pop_buffer(int(POP_TIMEOUT_S * 1e6))
+                if buffer is None:
+                    idle += 1
+                    if idle >= timeouts_for_lost:
+                        if not self._control_answers():
+                            raise self._lost(
+                                f"no image for {idle * POP_TIMEOUT_S:.1f} s and the control "
+                                f"channel does not answer"
+                            )
+                        idle = 0
+                    continue
+                idle = 0
+                try:
+                    if buffer.get_status() != success:
+                        self._bad_buffers += 1
+                        continue
+                    # get_image_data returns new bytes: the copy is ours once the
+                    # buffer goes back to the pool in `finally`
+                    item = (
+                        buffer.get_frame_id(),
+                        buffer.get_image_data(),
+                        buffer.get_image_width(),
+                        buffer.get_image_height(),
+                        buffer.get_image_padding()[0],
+                        buffer.get_timestamp() or buffer.get_system_timestamp(),
+                    )
+                finally:
+                    self._stream.push_buffer(buffer)
+                    buffer = None
+                with self._pending_cond:
+                    self._pending.append(item)
+                    self._pending_bytes += len(item[1])
+                    while self._pending_bytes > cap and len(self._pending) > 1:
+                        old = self._pending.popleft()
+                        self._pending_bytes -= len(old[1])
+                        self._dropped_in_driver += 1
+                    self._pending_cond.notify_all()
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer in _deliver
+            self._acq_error = exc
+        finally:
+            with self._pending_cond:
+                self._acq_done = True
+                self._pending_cond.notify_all()
+
+    def _deliver(self) -> Iterator[Frame]:
+        """Convert and yield the copied-out frames, on the consumer's thread."""
         index = None
         last_id = None
-        while not self._stop.is_set():
-            if self._control_lost.is_set():
-                raise self._lost("Aravis lost the control channel")
-            buffer = self._stream.timeout_pop_buffer(int(POP_TIMEOUT_S * 1e6))
-            if buffer is None:
-                idle += 1
-                if idle >= timeouts_for_lost:
-                    if not self._control_answers():
-                        raise self._lost(
-                            f"no image for {idle * POP_TIMEOUT_S:.1f} s and the control "
-                            f"channel does not answer"
-                        )
-                    idle = 0
-                continue
-            idle = 0
-            try:
-                if buffer.get_status() != success:
-                    self._bad_buffers += 1
-                    continue
-                frame_id = buffer.get_frame_id()
-                # Copy out (get_image_data returns new bytes) before the buffer
-                # goes back to the pool in `finally`.
-                data = buffer.get_image_data()
-                width, height = buffer.get_image_width(), buffer.get_image_height()
-                padding = buffer.get_image_padding()[0]
-                stamp_ns = buffer.get_timestamp() or buffer.get_system_timestamp()
-            finally:
-                self._stream.push_buffer(buffer)
-                buffer = None
+        while True:
+            with self._pending_cond:
+                while not self._pending and not self._acq_done and not self._stop.is_set():
+                    self._pending_cond.wait()
+                if self._stop.is_set():
+                    # stop() ends the stream now; what was still waiting is counted
+                    self._discarded_at_stop += len(self._pending)
+                    self._pending.clear()
+                    self._pending_bytes = 0
+                    return
+                if self._pending:
+                    frame_id, data, width, height, padding, stamp_ns = self._pending.popleft()
+                    self._pending_bytes -= len(data)
+                elif self._acq_error is not None:
+                    error, self._acq_error = self._acq_error, None
+                    raise error
+                else:
+                    return  # stopped
             index = frame_id if index is None else index + _id_step(last_id, frame_id)
             last_id = frame_id
             image = convert_image(data, self.pixel_format, width, height, padding)
             self._delivered += 1
             yield Frame(index=index, timestamp=stamp_ns / 1e9, exposure_s=self._exposure_s,
-                        image=image)
+                        image=image, bits=significant_bits(self.pixel_format))
 
     def _control_answers(self) -> bool:
         """Read a register with a deadline of ``probe_timeout_s``.
@@ -590,7 +726,10 @@ class AravisCamera(Camera):
     def _read_stats(self) -> dict[str, float]:
         stream = self._stream
         out: dict[str, float] = {"delivered": float(self._delivered),
-                                 "bad_buffers": float(self._bad_buffers)}
+                                 "bad_buffers": float(self._bad_buffers),
+                                 "dropped_in_driver": float(self._dropped_in_driver),
+                                 "discarded_at_stop": float(self._discarded_at_stop),
+                                 "buffers": float(self.pool_size)}
         if stream is None:
             return out
         from gi.repository import GObject

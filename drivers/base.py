@@ -37,6 +37,9 @@ class Frame:
         Stem used for exported files (``000012``).
     extras : dict
         Driver-specific data, e.g. ``{"truth": GroundTruth}`` from the synthetic camera.
+    bits : int, optional
+        Significant bits per sample (a 12-bit camera gives ``uint16`` values
+        0..4095: full scale is ``2**bits - 1``).  None: the dtype's full range.
     """
 
     index: int
@@ -45,10 +48,18 @@ class Frame:
     image: np.ndarray
     name: str = ""
     extras: dict[str, Any] = field(default_factory=dict)
+    bits: int | None = None
 
     @property
     def stem(self) -> str:
         return self.name or f"{self.index:06d}"
+
+    @property
+    def full_scale(self) -> float:
+        """The sample value of full exposure: ``2**bits - 1``, or the dtype's maximum."""
+        if self.bits:
+            return float(2**self.bits - 1)
+        return 65535.0 if self.image.dtype == np.uint16 else 255.0
 
 
 class Camera(abc.ABC):

@@ -118,6 +118,7 @@ class RecordedCamera(Camera):
                     exposure_s=self.exposure_s,
                     image=image,
                     name=entry.stem,
+                    bits=self.recording.bits,
                 )
             lap += 1
             if not self.loop or good == 0:

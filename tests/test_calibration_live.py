@@ -143,7 +143,7 @@ def test_live_capture_writes_a_valid_session(tmp_path):
     for name in ["/camera/image", "/camera/image/corners", "/projectors/left/column",
                  "/projectors/left/row", "/projectors/right/column", "/projectors/right/row",
                  "/world/camera", "/world/boards/pose00", "/world/boards/pose02/board",
-                 "/world/boards/pose01/normal", "/coverage/poses", "/status"]:
+                 "/world/boards/pose01/normal", "/poses/captured", "/status"]:
         assert name in ent, name
     assert sorted(_column(ent["/camera/image"], "attempt")) == [0, 1, 2, 3]
     corners = _column(ent["/camera/image/corners"], "Points2D:positions")
@@ -153,6 +153,6 @@ def test_live_capture_writes_a_valid_session(tmp_path):
     buf = bytes(_column(ent["/projectors/left/column"], "DepthImage:buffer")[0][0])
     cols = np.frombuffer(buf, np.float32).reshape(fmt["height"], fmt["width"])
     assert cols.shape == (300, 400) and cols.max() <= 128 and (cols > 0).mean() > 0.2
-    assert [v[0] for v in _column(ent["/coverage/poses"], "Scalars:scalars")] == [1.0, 2.0, 3.0]
+    assert [v[0] for v in _column(ent["/poses/captured"], "Scalars:scalars")] == [1.0, 2.0, 3.0]
     texts = [t[0] for t in _column(ent["/status"], "TextLog:text")]
     assert "pose01: too similar to pose00" in texts[1] and "3/3 poses" in texts[3]

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +25,7 @@ RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"
 SIM_SIZE = (512, 512)
 
 
-def rrd_frames(path: Path, entity: str = "/camera/depth") -> set[int]:
+def rrd_frames(path: Path, entity: str = "/world/camera/depth") -> set[int]:
     frames: set[int] = set()
     for chunk in RrdReader(path).stream():
         if chunk.entity_path == entity:
@@ -138,9 +140,16 @@ def test_capture_aravis_100_frames_lossless(sim, sim_rig_file, tmp_path, capsys)
     ids = [int(s) for s in stems]
     assert ids == list(range(ids[0], ids[0] + 110))
     assert read_recording(rec).exposure_s == pytest.approx(0.004)
-    assert len(rrd_frames(rrd)) == 110
-    assert "processed 110 of 110 frames" in err
-    assert "dropped 0 (frames queue 0, results queue 0); lost by the camera 0" in err
+    assert "warming up" in out
+    # depth may skip frames on a busy machine, but every skip is counted and shown
+    m = re.search(r"processed (\d+) of 110 frames", err)
+    assert m, err
+    done = int(m.group(1))
+    drops = re.search(r"dropped (\d+) \(frames queue (\d+), results queue (\d+)\)", err)
+    assert drops and done + int(drops.group(1)) == 110, err
+    assert len(rrd_frames(rrd)) == done
+    assert "lost by the camera 0" in err
+    assert "recorder is falling behind" not in err
 
 
 @pytest.mark.aravis
@@ -159,7 +168,9 @@ def test_capture_aravis_camera_lost_mid_stream(sim, sim_rig_file, tmp_path):
                 break
         threading.Event().wait(1.0)
         sim.kill()
+        killed = time.monotonic()
         out, err = proc.communicate(timeout=60)
+        took = time.monotonic() - killed
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -167,6 +178,10 @@ def test_capture_aravis_camera_lost_mid_stream(sim, sim_rig_file, tmp_path):
     assert proc.returncode == 2, err
     last = err.strip().splitlines()[-1]
     assert last.startswith(f"lightflow: error: aravis:{SIM_ADDRESS}: camera lost after ")
+    # reported after about 2 s (1 s without images, 1 s probe); no thread may keep the
+    # process alive while Aravis retries its dead control channel (that took 13 s)
+    print(f"exited {took:.1f} s after the camera was lost")
+    assert took < 8, err
     assert "Traceback" not in err
     stems = check_recording(rec)  # valid JSON, and every listed frame loads
     assert len(stems) >= 10

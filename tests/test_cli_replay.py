@@ -52,7 +52,7 @@ def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
     assert finite.size > 0 and 0.4 < float(np.median(finite)) < 1.1
     frames = set()
     for chunk in RrdReader(rrd).stream():
-        if chunk.entity_path == "/camera/depth":
+        if chunk.entity_path == "/world/camera/depth":
             rb = chunk.to_record_batch()
             frames.update(rb.column("frame").to_pylist())
     assert frames == set(range(N_FRAMES))

@@ -33,7 +33,7 @@ def test_devices_lists_simulator(sim, capsys, monkeypatch):
     assert "Aravis Fake, serial DEV01, GigEVision at 127.0.0.1" in camera[0]
     # No V4L2 node can exist on this kernel; no X display was given.
     assert out[out.index("V4L2 devices:") + 1] == "  none found"
-    assert out[-1] == "screens: no display (set DISPLAY)"
+    assert out[-1] == "screens: no display (set DISPLAY)"  # a camera: no "next steps"
 
 
 def test_devices_without_discovery(capsys, monkeypatch):
@@ -41,7 +41,14 @@ def test_devices_without_discovery(capsys, monkeypatch):
     assert main(["devices", "--no-discovery"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[1] == "  (discovery skipped)"
-    assert out[-1] == "screens: no display (set DISPLAY)"
+    assert "screens: no display (set DISPLAY)" in out
+    # nothing found: what to try next, down to the cameras that need no hardware
+    hint = out[out.index("screens: no display (set DISPLAY)") + 1:]
+    assert hint[0] == "No USB3 Vision or V4L2 camera found (GigE Vision discovery skipped)."
+    text = "\n".join(hint)
+    for step in ("udev/README.md", "plugdev", "'video' group", "lightflow demo",
+                 "synthetic:ball", "replay:REC", "aravis:127.0.0.1"):
+        assert step in text, step
 
 
 def test_help_explains(capsys):
@@ -95,5 +102,5 @@ def test_devices_lists_screens(tmp_path, capsys, monkeypatch):
     finally:
         server.stop()
     out = capsys.readouterr().out.splitlines()
-    assert out[-2] == f"Screens (DISPLAY={server.display}):"
-    assert out[-1].startswith("  0: ") and out[-1].endswith("1280x800 at +0+0")
+    i = out.index(f"Screens (DISPLAY={server.display}):")
+    assert out[i + 1].startswith("  0: ") and out[i + 1].endswith("1280x800 at +0+0")

@@ -36,3 +36,15 @@ def test_static_and_overlapping_bands_give_no_flow():
     assert np.isnan(overlapping).all()
     fine, _, _ = model.combine(_grids((16.0, 14.0), (60.0, 36.0)), FlowParams())
     assert np.isfinite(fine).all()
+
+
+def test_bands_longer_than_the_tables_are_measured():
+    """Widths beyond the profile tables (48 px) are the sweep itself: no NaN above 48 px."""
+    rig = resolve_rig("two-projector")
+    model = FlowModel(rig)
+    model.blur[:] = (0.5, 0.2)
+    (_, pat1), (_, pat2) = rig.patterns
+    for m in (47.5, 49.0, 60.0, 90.0):
+        log_ratio, flows, _ = model.combine(_grids((m, 20.0), (200.0, 40.0)), FlowParams())
+        assert np.allclose(flows[0], m / 200.0 * pat1.pitch_px, rtol=2e-3)
+        assert np.allclose(log_ratio, np.log(m / 200.0) - np.log(20.0 / 40.0), atol=3e-3)

@@ -136,7 +136,7 @@ def test_unknown_key(rec_dir):
         read_recording(rec_dir)
     assert str(err.value) == (
         f"{rec_dir}/recording.json: unknown key 'fps' "
-        "(expected only: exposure_s, format, frames, rig)"
+        "(expected only: exposure_s, format, frames, rig; optional: bits)"
     )
 
 
@@ -166,7 +166,7 @@ BAD_FIELDS = [
     (lambda d: d.pop("frames"), "missing key 'frames'"),
     (lambda d: d["frames"][1].update(t="x"), f'frames[1].t: {SECONDS} "x"'),
     (lambda d: d["frames"][2].update(size=3), "frames[2]: unknown key 'size'"),
-    (lambda d: d["frames"][0].update(file="../x.png"), "frames[0].file: expected a path inside"),
+    (lambda d: d["frames"][0].update(file="../x.png"), "frames[0].file: expected a plain path"),
 ]
 
 
@@ -261,6 +261,72 @@ def test_recording_survives_kill_9(tmp_path):
     assert len(rec.frames) >= 20
     for i in range(len(rec.frames)):
         assert load_frame(rec, i).shape == (H, W, 3)
+    # frames whose file was complete but not yet listed are not lost: the index names
+    # them, and --repair relists them and removes what was cut off mid-write
+    indexed = [json.loads(line)["file"] for line in (root / "frames.index").read_text()
+               .splitlines() if line.endswith("}")]  # fmt: skip
+    assert cli_main(["verify", str(root), "--repair"]) == 0
+    repaired = read_recording(root)
+    assert [e.file for e in repaired.frames] == indexed
+    assert len(repaired.frames) >= len(rec.frames)
+    for i in range(len(repaired.frames)):
+        assert load_frame(repaired, i).shape == (H, W, 3)
+    on_disk = sorted(p.name for p in (root / "frames").iterdir())
+    assert on_disk == sorted(Path(f).name for f in indexed)
+    assert not list(root.glob(".*.tmp"))
+
+
+def test_verify_reports_unlisted_and_temporary_files(rec_dir, capsys):
+    (rec_dir / "frames" / "000009.png").write_bytes(b"\x89PNG\r\n\x1a\n cut off")
+    (rec_dir / ".recording.json.tmp").write_text("{")
+    assert cli_main(["verify", str(rec_dir)]) == 2
+    out = capsys.readouterr().out
+    assert "1 file(s) not listed in recording.json (first 000009.png" in out
+    assert ".recording.json.tmp: leftover temporary file" in out
+    assert cli_main(["verify", str(rec_dir), "--repair"]) == 0
+    assert not (rec_dir / "frames" / "000009.png").exists()
+
+
+def test_verify_flags_a_recording_without_frames(rec_dir, capsys):
+    edit_json(rec_dir, lambda d: d.update(frames=[]))
+    for p in (rec_dir / "frames").iterdir():
+        p.unlink()
+    assert cli_main(["verify", str(rec_dir)]) == 2
+    assert "the recording lists no frame" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("file, why", [
+    ("frames/./000000.png", "expected a plain path inside the recording folder"),
+    ("frames//000000.png", "expected a plain path inside the recording folder"),
+    ("frames/000000.jpg", "expected a .png file"),
+    ("frames/" + "x" * 5000 + ".png", "file name longer than 200 bytes"),
+])  # fmt: skip
+def test_frame_paths_are_plain_pngs(rec_dir, file, why):
+    edit_json(rec_dir, lambda d: d["frames"][1].update(file=file))
+    with pytest.raises(ConfigError, match=why):
+        read_recording(rec_dir)
+
+
+def test_frame_listed_twice_is_rejected(rec_dir):
+    edit_json(rec_dir, lambda d: d["frames"][1].update(file=d["frames"][0]["file"]))
+    with pytest.raises(ConfigError, match=r"frames\[1\].file: frames/000000.png is already "
+                       r"frames\[0\]"):
+        read_recording(rec_dir)
+
+
+def test_frame_linked_outside_the_folder_is_rejected(rec_dir, tmp_path):
+    outside = tmp_path / "outside.png"
+    (rec_dir / "frames" / "000001.png").rename(outside)
+    (rec_dir / "frames" / "000001.png").symlink_to(outside)
+    with pytest.raises(FrameError, match="a link to a file outside the recording folder"):
+        load_frame(read_recording(rec_dir), 1)
+
+
+def test_jpeg_named_png_is_rejected(rec_dir):
+    ok, jpeg = cv2.imencode(".jpg", make_image(1))
+    (rec_dir / "frames" / "000001.png").write_bytes(jpeg.tobytes())
+    with pytest.raises(FrameError, match="not a PNG file"):
+        load_frame(read_recording(rec_dir), 1)
 
 
 # ----------------------------------------------------------------------------- replay
@@ -336,7 +402,7 @@ def test_verify_lists_every_problem(rec_dir, capsys):
         f"PROBLEM {rec_dir}/recording.json: frames[2].t: 0 s does not increase "
         "(frames[1].t = 10.0333 s)",
         f"PROBLEM {rec_dir}/frames/000001.png: frame file missing (listed as frames[1])",
-        f"PROBLEM {rec_dir}/frames/000003.png: not a readable image",
+        f"PROBLEM {rec_dir}/frames/000003.png: not a PNG file (frames must be PNG)",
         f"{rec_dir}: 4 frames, 80x60, exposure 20 ms: 3 problems",
     ]
 
@@ -380,3 +446,16 @@ def test_replay_with_rig_override_checks_its_size(rec_dir):
     with cam:
         assert list(cam.frames()) == []
     assert len(cam.bad_frames) == 4
+
+
+def test_twelve_bit_frames_record_and_replay_with_their_bits(tmp_path, rig):
+    root = tmp_path / "rec12"
+    image = (make_image(1).astype(np.uint16) * 16).astype(np.uint16)  # 0..4080
+    with RecordingWriter(root, rig, 0.02) as w:
+        w.write(Frame(0, 0.0, 0.02, image, bits=12))
+    doc = json.loads((root / "recording.json").read_text())
+    assert doc["bits"] == 12
+    with RecordedCamera(root) as cam:
+        (frame,) = list(cam.frames())
+    assert frame.bits == 12 and frame.full_scale == 4095
+    np.testing.assert_array_equal(frame.image, image)

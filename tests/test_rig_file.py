@@ -185,8 +185,21 @@ def test_rig_check_of_example_rigs(name, tmp_path, capsys):
     assert cli_main(["rig", "check", str(RIGS / f"{name}.json"), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "verdict: usable" in printed
-    assert "median error (mm)" in printed
+    assert "expected depth error (mm), median" in printed
     names = sorted(p.name for p in out.iterdir())
     assert len(names) == 12 and "error-0.75m.png" in names and "overlap-0.50m.png" in names
     assert cli_main(["rig", "check", str(RIGS / f"{name}.json")]) == 0
     assert "add --out DIR" in capsys.readouterr().out
+
+
+def test_rig_check_speaks_plain_words(capsys):
+    """No explanatory line passes for a failure; the paper's symbols come with words."""
+    assert cli_main(["rig", "check", "two-projector", "--stride", "32"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert not [line for line in out if line.lower().startswith("error")]
+    text = "\n".join(out)
+    for words in ("working depth z", "lit by both projectors", "steepness |dh/dz| (1/m)",
+                  "expected depth error (mm)", "line spacing B1 in the image (px)",
+                  "h(z) is the log ratio of the two light flows"):
+        assert words in text, words
+    assert "verdict: usable" in out

@@ -250,7 +250,7 @@ def test_status_line_and_summary():
                      extra={"dropped_frames_queue": 2.0, "dropped_results_queue": 0.0,
                             "coverage": 0.4, "camera_underruns": 5.0})  # fmt: skip
     text = format_status(stats, total=10)
-    for part in ["frame 8/10", "29.5 fps", "12.5 MiB/s", "latency   41 ms", "coverage  40%",
+    for part in ["frame 8/10", "29.5 fps", "12.5 MiB/s", "latency   41 ms", "depth on image  40%",
                  "drops 2 frames/0 results", "camera lost 1", "underruns 5"]:  # fmt: skip
         assert part in text, (part, text)
     out = io.StringIO()  # not a TTY: whole lines, throttled
@@ -262,6 +262,7 @@ def test_status_line_and_summary():
     summary = format_summary(stats, ["x"])
     assert summary[0].startswith("processed 8 of 10 frames; dropped 2")
     assert "bad frames 1" in summary[0]
+    assert "depth on image (share of all camera pixels with a depth, last frame): 40.0%" in summary
     assert "frame file missing" in out.getvalue()
 
 

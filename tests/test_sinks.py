@@ -62,26 +62,61 @@ def read_ply(path: Path) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype, offset=end)
 
 
-@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
-def test_ply_export(tmp_path, rig, dtype):
+def test_ply_export(tmp_path, rig):
     sink = PlyExportSink(tmp_path / "ply", rig)
-    result = make_result(rig, dtype=dtype)
-    if dtype == np.uint16:
-        result.frame.image[...] <<= 8
+    result = make_result(rig)
     sink.write(result, RunStats())
     sink.close()
     v = read_ply(tmp_path / "ply" / "000007.ply")
     assert len(v) == 60 * 40  # every pixel with a depth
     rays = camera_rays(rig.camera)
-    # first point: row 0, column 40 (row-major order of the valid pixels)
+    # first point: row 0, column 40 (row-major order of the valid pixels), in the
+    # PLY frame: x right, y up, z towards the camera
     z = 0.5 + 0.01 * 40
-    assert v["z"][0] == pytest.approx(z)
+    assert v["z"][0] == pytest.approx(-z)
     assert v["x"][0] == pytest.approx(rays[0, 40, 0] * z, rel=1e-6)
-    assert v["y"][0] == pytest.approx(rays[0, 40, 1] * z, rel=1e-6)
-    assert (v["red"][0], v["green"][0], v["blue"][0]) == (120, 0, 200)
+    assert v["y"][0] == pytest.approx(-rays[0, 40, 1] * z, rel=1e-6)
     last = v[-1]  # row 59, column 79
-    assert (last["red"], last["green"], last["blue"]) == (237, 236, 200)
-    assert last["z"] == pytest.approx(0.5 + 0.79)
+    assert last["z"] == pytest.approx(-(0.5 + 0.79))
+    # coloured by depth (turbo): near and far differ, and neither is near-black
+    near = np.array([v["red"][0], v["green"][0], v["blue"][0]], float)
+    far = np.array([last["red"], last["green"], last["blue"]], float)
+    assert near.max() > 100 and far.max() > 100
+    assert np.abs(near - far).max() > 100
+
+
+def test_image_to_rgb8_uses_the_significant_bits():
+    from lightflow.app.sinks.ply import image_to_rgb8
+
+    twelve_bit = np.full((2, 2, 3), 4095, np.uint16)
+    assert image_to_rgb8(twelve_bit, 4095.0).max() == 255
+    assert image_to_rgb8(twelve_bit).max() == 15  # read as 16-bit it would be nearly black
+
+
+def test_full_disk_during_export_is_one_line_and_leaves_no_partial_file(tmp_path, rig,
+                                                                        monkeypatch):
+    import errno
+
+    from lightflow.app.errors import OutputError
+    from lightflow.app.sinks.depth_export import DepthExportSink
+
+    real_open = open
+
+    def full_disk_open(path, mode="r", *args, **kwargs):
+        fh = real_open(path, mode, *args, **kwargs)
+        if "w" in mode and str(path).endswith(".tmp"):
+            def write(data):
+                raise OSError(errno.ENOSPC, "No space left on device")
+            fh.write = write
+        return fh
+
+    monkeypatch.setattr("builtins.open", full_disk_open)
+    for sink, name in ((DepthExportSink(tmp_path / "d"), "d/000007.npy"),
+                       (PlyExportSink(tmp_path / "p", rig), "p/000007.ply")):
+        with pytest.raises(OutputError) as err:
+            sink.write(make_result(rig), RunStats())
+        assert str(err.value) == f"{tmp_path / name}: cannot write: No space left on device"
+        assert list((tmp_path / name).parent.iterdir()) == []
 
 
 def test_recorder_sink(tmp_path, rig):

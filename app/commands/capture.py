@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+import time
+
+import numpy as np
 
 from lightflow.app.errors import ConfigError, FrameError
 
@@ -35,6 +38,16 @@ or closing it stops cleanly: queued frames are finished and every output,
 including the recording, is complete.  When processing falls behind, the
 oldest frames are dropped (counted in the status line); --record still gets
 every frame the camera delivers.
+
+Acquisition never waits on processing: the driver's own thread keeps the
+camera's buffers cycling, and before streaming starts every compiled kernel,
+the depth table and the blur tables are loaded ("warming up").  With
+--lossless the recording is lossless: the recorder never drops a frame (it
+buffers up to --record-buffer MiB in memory and says at once when the disk is
+slower than the camera); depth may still skip frames, counted and shown.
+
+Exit status: 0 when the run ended (camera exhausted, --frames reached,
+Ctrl-C); 2 on bad input, a missing or lost device, or a failed output.
 
 Cameras: aravis:ID|ADDRESS, v4l2:/dev/videoN, synthetic:SCENE (rendered, no
 hardware needed), replay:REC (a recording played as a camera)."""
@@ -75,7 +88,10 @@ def register(subparsers) -> None:
     p.add_argument("--queue-size", type=int, default=4, metavar="N",
                    help="frames buffered between the threads (default 4)")
     p.add_argument("--lossless", action="store_true",
-                   help="block instead of dropping when processing falls behind")
+                   help="the recording gets every frame the camera delivers, whatever the disk "
+                   "does (depth may skip frames, counted); replay/synthetic cameras: depth too")
+    p.add_argument("--record-buffer", type=float, default=1024, metavar="MIB",
+                   help="memory for frames waiting to be written by --record (default 1024)")
     p.add_argument("--fps", type=float, metavar="FPS",
                    help="camera frame rate (default: the camera's; synthetic: 30)")
     add_output_options(p)
@@ -94,6 +110,39 @@ def parse_exposure(text: str | None) -> float | str | None:
     if not ms > 0:
         raise ConfigError(f"--exposure: expected a positive number of milliseconds, got {text}")
     return ms / 1e3
+
+
+def warm_up(pipeline, log=print) -> float:
+    """Compile the pipeline's kernels and load its tables before the camera streams.
+
+    The first frame through a fresh process costs hundreds of milliseconds
+    (numba compilation, table loading); done while the camera streams, that
+    stall would back up into the camera.  A scratch pipeline sharing the depth
+    table processes one striped test image, so the real pipeline's learnt
+    state (colour leak, windows) starts from real frames.
+
+    Returns
+    -------
+    float
+        Seconds it took.
+    """
+    from lightflow.app.pipeline import DepthPipeline
+    from lightflow.drivers.base import Frame
+
+    if not isinstance(pipeline, DepthPipeline):
+        return 0.0
+    log("warming up (compiling kernels, loading the depth and blur tables) ...", flush=True)
+    t0 = time.perf_counter()
+    cam = pipeline.rig.camera
+    x = np.arange(cam.width)
+    image = np.full((cam.height, cam.width, 3), 20, np.uint8)
+    image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
+    image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
+    scratch = DepthPipeline(pipeline.rig, pipeline.config, lut=pipeline.lut)
+    scratch.process(Frame(index=0, timestamp=0.0, exposure_s=0.01, image=image))
+    took = time.perf_counter() - t0
+    log(f"warmed up in {took:.1f} s", flush=True)
+    return took
 
 
 def run(args: argparse.Namespace) -> int:
@@ -147,18 +196,30 @@ def run(args: argparse.Namespace) -> int:
                   flush=True)
         else:
             print(f"exposure: {camera.exposure_s * 1e3:.3g} ms (the camera's)", flush=True)
+        warm_up(pipeline, log=print)
         sinks = build_sinks(args, rig)
         try:
-            recorder = (
-                RecordingWriter(args.record, rig, camera.exposure_s) if args.record else None
-            )
+            recorder = None
+            if args.record:
+                frame_mib = w * h * 3 * 2 / 2**20  # worst case: 16-bit samples
+                recorder = RecordingWriter(
+                    args.record, rig, camera.exposure_s,
+                    queue_size=max(16, int(args.record_buffer / frame_mib)),
+                    # lossless: block the capture thread (the driver keeps buffering) rather
+                    # than drop; otherwise absorb short disk stalls, then drop and count
+                    put_timeout_s=None if args.lossless else 0.5,
+                )  # fmt: skip
         except BaseException:
             close_all(sinks)
             raise
         status = StatusLine(total=args.frames)
+        # A live camera must never wait for depth: only cameras that cannot lose
+        # frames (replay, synthetic) may block on a full queue.
+        blocking = args.lossless and scheme in ("replay", "synthetic")
         runner = Runner(
             camera, pipeline, sinks, queue_size=args.queue_size, on_stats=status,
-            lossless=args.lossless, recorder=recorder, max_frames=args.frames,
+            lossless=blocking, recorder=recorder, max_frames=args.frames,
+            on_warning=lambda text: print(f"warning: {text}", file=sys.stderr, flush=True),
         )  # fmt: skip
         stop = threading.Event()
         print("capturing; Ctrl-C to stop", flush=True)

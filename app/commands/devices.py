@@ -37,6 +37,22 @@ UDEV_HINT = (
 )
 
 
+#: printed when no camera of any kind was found: what to try next
+NONE_FOUND_HINT = """\
+Next steps:
+  - USB3 Vision camera: install the udev rules (udev/README.md), join the
+    'plugdev' group, log in again, then plug the camera in again.
+  - GigE Vision camera: put this machine on the camera's subnet and let UDP
+    port 3956 (GVCP) through the firewall; `arv-tool-0.8` lists what Aravis sees.
+  - V4L2 camera (webcam): join the 'video' group; /dev/video* must exist.
+  - No hardware at hand:
+      lightflow demo                                  (a rendered moving scene)
+      lightflow capture --camera synthetic:ball --rig two-projector
+      lightflow capture --camera replay:REC           (a recording played as a camera)
+      arv-fake-gv-camera-0.8 -i 127.0.0.1, then --camera aravis:127.0.0.1
+                                                      (the Aravis GigE Vision simulator)"""
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "devices",
@@ -96,24 +112,24 @@ def usb3vision_nodes(sysfs: str = USB_SYSFS, dev_root: str = "/dev/bus/usb") -> 
     return list(found.values())
 
 
-def _aravis_lines(discover: bool) -> list[str]:
+def _aravis_lines(discover: bool) -> tuple[list[str], bool]:
     from lightflow.app.errors import DriverError
 
     if not discover:
-        return ["  (discovery skipped)"]
+        return ["  (discovery skipped)"], False
     try:
         from lightflow.drivers.aravis import list_aravis_devices
 
         devices = list_aravis_devices()
     except DriverError as exc:
-        return [f"  not available: {exc}"]
+        return [f"  not available: {exc}"], False
     if not devices:
-        return ["  none found"]
+        return ["  none found"], False
     return [
         f"  aravis:{d.id}  {d.vendor} {d.model}, serial {d.serial}, "
         f"{d.protocol} at {d.address or d.physical_id}"
         for d in devices
-    ]
+    ], True
 
 
 def _v4l2_lines() -> tuple[list[str], bool]:
@@ -165,7 +181,8 @@ def _screen_lines() -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     print("Aravis cameras (GigE Vision, USB3 Vision):")
-    print("\n".join(_aravis_lines(not args.no_discovery)))
+    aravis, aravis_found = _aravis_lines(not args.no_discovery)
+    print("\n".join(aravis))
     print("USB3 Vision device nodes:")
     usb, usb_denied = _usb_lines()
     print("\n".join(usb))
@@ -175,4 +192,9 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(_screen_lines()))
     if usb_denied or v4l2_denied:
         print(UDEV_HINT)
+    nodes_found = any(not line.startswith("  none found") for line in usb + v4l2)
+    if not (aravis_found or nodes_found):
+        print("No camera found." if not args.no_discovery
+              else "No USB3 Vision or V4L2 camera found (GigE Vision discovery skipped).")
+        print(NONE_FOUND_HINT)
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import cv2
@@ -10,7 +11,7 @@ import cv2
 from lightflow.app.depth_model import DepthRange
 from lightflow.app.errors import ConfigError
 from lightflow.app.rig import resolve_rig
-from lightflow.app.rigcheck import BAND_PX, MAX_ERROR_M, check_rig
+from lightflow.app.rigcheck import BAND_PX, MAX_ERROR_M, RigReport, check_rig
 
 DESCRIPTION = f"""\
 Check a rig file before scanning with it: is the log flow ratio h(z) steep and
@@ -97,12 +98,53 @@ def write_images(images: dict, out: Path) -> list[Path]:
     return written
 
 
+def report_lines(report: RigReport) -> list[str]:
+    """The check's numbers as a table whose rows say in words what each symbol means."""
+    stats = report.stats
+    lit = "lit by the projector" if report.single_projector else "lit by both projectors"
+
+    def row(name: str, values) -> str:
+        return f"  {name:<42}" + "".join(f"{v:>9}" for v in values)
+
+    def pct(x: float) -> str:
+        return f"{100 * x:.0f} %"
+
+    def num(x: float, fmt: str) -> str:
+        return "-" if not math.isfinite(x) else format(x, fmt)
+
+    lines = [
+        report.description,
+        row("working depth z", [f"{st.z:.2f} m" for st in stats]),
+        row(lit, [pct(st.lit) for st in stats]),
+        row("usable: depth can be measured", [pct(st.usable) for st in stats]),
+        row("flat h(z): too little change with depth", [pct(st.flat) for st in stats]),
+        row("h(z) not invertible: depth ambiguous", [pct(st.not_invertible) for st in stats]),
+        row("steepness |dh/dz| (1/m), median", [num(st.median_slope, ".2f") for st in stats]),
+        row("expected depth error (mm), median",
+            [num(st.median_error_mm, ".0f") for st in stats]),
+    ]  # fmt: skip
+    n_patterns = len(stats[0].median_interval_px) if stats else 0
+    for i in range(n_patterns):
+        values = [num(st.median_interval_px[i], ".1f") for st in stats]
+        lines.append(row(f"line spacing B{i + 1} in the image (px), median", values))
+    lines += [
+        f"usable on {pct(report.coverage)} of the image, {lit} on {pct(report.overlap)} "
+        "(means over the working depths)",
+        "h(z) is the log ratio of the two light flows a surface at depth z gives;",
+        "  the steeper it is (larger |dh/dz|), the finer the depth.",
+        f"The expected depth error assumes 1/4 px of error in {BAND_PX:g} px long bands",
+        "  and in the line spacings B.",
+        "verdict: " + ("usable" if report.usable else f"degenerate: {report.problem}"),
+    ]
+    return lines
+
+
 def run(args: argparse.Namespace) -> int:
     rig = resolve_rig(args.rig)
     if args.stride < 1:
         raise ConfigError(f"--stride: expected an integer >= 1, got {args.stride}")
     report = check_rig(rig, args.depths, DepthRange(args.near, args.far), args.stride)
-    for line in report.summary_lines():
+    for line in report_lines(report):
         print(line)
     for warning in report.warnings:
         print(f"WARNING {warning}")

@@ -6,15 +6,26 @@ import argparse
 from collections import Counter
 
 from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.recording import Recording, load_frame, read_recording
-from lightflow.app.rig import load_rig
+from lightflow.app.recording import (
+    FRAMES_DIR,
+    Recording,
+    load_frame,
+    read_recording,
+    repair_recording,
+    unlisted_files,
+)
+from lightflow.app.rig import resolve_rig
 
 DESCRIPTION = """\
 Check a recording folder (recording.json + frames/*.png) before replaying it or
 handing it on: recording.json must follow the format exactly (with a valid rig
 and a positive exposure_s), every listed frame must exist, be a readable RGB
 PNG of the camera size (8 or 16 bits per channel), appear once, and the
-timestamps t must increase.
+timestamps t must increase.  A recording that lists no frame, frame files
+that recording.json does not list and leftover temporary files are reported
+too: a killed `lightflow capture --record` leaves them.  `--repair` then lists
+every complete frame the recorder had written (from frames.index) and removes
+partial files; run verify again afterwards.
 
 Every problem is printed on its own line.  Exit status: 0 when the recording
 is clean, 2 when anything is wrong."""
@@ -22,7 +33,8 @@ is clean, 2 when anything is wrong."""
 EPILOG = """\
 examples:
   lightflow verify rec/                 # exit 0 when clean, 2 with one line per problem
-  lightflow verify rec/ --rig rig.json  # check the frames against another rig's camera size"""
+  lightflow verify rec/ --rig rig.json  # check the frames against another rig's camera size
+  lightflow verify rec/ --repair        # after a crash: relist complete frames"""
 
 
 
@@ -38,8 +50,11 @@ def register(subparsers) -> None:
     p.add_argument(
         "--rig",
         metavar="RIG.json",
-        help="check the frames against this rig's camera instead of the embedded rig",
+        help="check the frames against this rig's camera instead of the embedded rig "
+        "(a file or an example rig name such as two-projector)",
     )
+    p.add_argument("--repair", action="store_true",
+                   help="relist complete frames a crash left unlisted and remove partial files")
     p.set_defaults(func=run)
 
 
@@ -53,6 +68,16 @@ def check_recording(rec: Recording) -> list[str]:
     """
     problems: list[str] = []
     src = rec.json_path
+    if not rec.frames:
+        problems.append(f"{src}: frames: the recording lists no frame")
+    unlisted, temporary = unlisted_files(rec)
+    if unlisted:
+        problems.append(
+            f"{rec.root / FRAMES_DIR}: {len(unlisted)} file(s) not listed in recording.json "
+            f"(first {unlisted[0].name}; a crash while recording? `lightflow verify --repair`)"
+        )
+    for p in temporary:
+        problems.append(f"{p}: leftover temporary file (an interrupted write; --repair removes it)")
     counts = Counter(e.file for e in rec.frames)
     for file, n in sorted(counts.items()):
         if n > 1:
@@ -73,7 +98,11 @@ def check_recording(rec: Recording) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    rig = load_rig(args.rig) if args.rig else None
+    rig = resolve_rig(args.rig) if args.rig else None
+    if args.repair:
+        added, removed = repair_recording(args.recording)
+        print(f"{args.recording}: relisted {added} frame(s), removed {len(removed)} partial "
+              f"or temporary file(s)")
     try:
         rec = read_recording(args.recording, rig)
     except ConfigError as exc:

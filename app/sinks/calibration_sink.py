@@ -1,4 +1,4 @@
-"""Rerun view of a live calibration: what the camera sees, what was decoded, pose coverage.
+"""Rerun view of a live calibration: what the camera sees, what was decoded, the poses so far.
 
 Entity layout (on the ``attempt`` timeline, one step per pose attempt)::
 
@@ -12,11 +12,13 @@ Entity layout (on the ``attempt`` timeline, one step per pose attempt)::
     world/boards/<pose>                Transform3D (rough board pose) with a Boxes3D
                                        outline of the board and an Arrows3D normal;
                                        they stay, so the 3D view shows every pose so far
-    coverage/poses, coverage/tilt_deg  Scalars: poses captured, tilt of the last one
+    poses/captured, poses/tilt_deg     Scalars: poses captured (count), tilt of the last
+                                       captured board (degrees), each in its own plot
     status                             TextLog: what happened, in plain words
 
-The recording stream is opened like :class:`~lightflow.app.sinks.rerun_sink.RerunSink`
-does (an .rrd file, or a viewer spawned on 127.0.0.1), with its process helpers.
+The recording stream is a :class:`~lightflow.app.sinks.rerun_sink.RerunOutput`, as
+for the depth sink (an .rrd file written by this process, or a viewer spawned on
+127.0.0.1).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from lightflow.app.errors import ConfigError
-from lightflow.app.sinks.rerun_sink import RerunProcess, flush_stream, open_stream
+from lightflow.app.sinks.rerun_sink import RerunOutput, RerunProcess
 from lightflow.calibration.live import PoseView, guessed_K
 from lightflow.calibration.session import Board
 
@@ -39,7 +41,7 @@ REJECTED_RGB = (255, 150, 40)
 
 
 def make_blueprint(projectors: list[str]) -> rrb.Blueprint:
-    """Camera with corners, the decoded maps of each projector, 3D poses, coverage, status."""
+    """Camera with corners, the decoded maps of each projector, 3D poses, pose plots, status."""
     maps = [rrb.Spatial2DView(origin=f"projectors/{name}/{axis}", name=f"{name} {axis}")
             for name in projectors for axis in ("column", "row")]
     return rrb.Blueprint(
@@ -50,7 +52,13 @@ def make_blueprint(projectors: list[str]) -> rrb.Blueprint:
             ),
             rrb.Vertical(
                 rrb.Spatial3DView(origin="world", name="board poses (rough)"),
-                rrb.TimeSeriesView(origin="coverage", name="coverage"),
+                # a count and an angle: one plot each, no legend over the lines
+                rrb.Horizontal(
+                    rrb.TimeSeriesView(origin="poses/captured", name="poses captured",
+                                       plot_legend=rrb.PlotLegend(visible=False)),
+                    rrb.TimeSeriesView(origin="poses/tilt_deg", name="board tilt (deg)",
+                                       plot_legend=rrb.PlotLegend(visible=False)),
+                ),
                 rrb.TextLogView(origin="status", name="status"),
                 row_shares=[3, 1, 1],
             ),
@@ -91,10 +99,12 @@ class CalibrationSink:
         self.captured = 0
         self._static_done = False
         self._closed = False
-        self._process: RerunProcess | None = None
-        self.rec, self._process = open_stream(app_id, mode, self.path, port)
+        self.output = RerunOutput(app_id, mode, self.path, port)
+        self.rec = self.output.rec
+        self._process: RerunProcess | None = self.output.process
         self.rec.send_blueprint(make_blueprint(list(projectors)))
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        self.output.pump()
 
     def _log_camera(self, size: tuple[int, int]) -> None:
         w, h = size
@@ -129,8 +139,9 @@ class CalibrationSink:
             if view.R is not None:
                 self._log_board(view)
             self.captured = view.captured
-            rec.log("coverage/poses", rr.Scalars(float(view.captured)))
+            rec.log("poses/captured", rr.Scalars(float(view.captured)))
         self.attempts += 1
+        self.output.pump()
 
     def _log_board(self, view: PoseView) -> None:
         b = self.board
@@ -145,14 +156,14 @@ class CalibrationSink:
         self.rec.log(f"{path}/normal", rr.Arrows3D(origins=[centre],
                                                    vectors=[view.R.T @ normal * 0.1]))
         tilt = math.degrees(math.acos(min(1.0, abs(float(view.R[2, 2])))))
-        self.rec.log("coverage/tilt_deg", rr.Scalars(tilt))
+        self.rec.log("poses/tilt_deg", rr.Scalars(tilt))
 
     def close(self) -> None:
         """Flush everything (the .rrd is complete afterwards)."""
         if self._closed:
             return
         self._closed = True
-        flush_stream(self.rec, self._process)
+        self.output.close()
 
     def describe(self) -> str:
         """How the user gets to see what was logged."""

@@ -3,22 +3,40 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
-from lightflow.app.errors import FrameError
+from lightflow.app.errors import FrameError, OutputError
 from lightflow.app.results import FrameResult, RunStats
+
+
+def write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """Write a file so that readers see it complete or not at all.
+
+    ``write(fh)`` fills a temporary file beside ``path``, which then replaces
+    it.  A failure (a full disk) removes the temporary file and becomes one
+    :class:`~lightflow.app.errors.OutputError` naming ``path``.
+    """
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        why = exc.strerror or str(exc).splitlines()[0]
+        raise OutputError(f"{path}: cannot write: {why}") from None
 
 
 def write_depth_npy(path: Path, depth: np.ndarray) -> None:
     """Write a float32 ``(H, W)`` depth map atomically (readers never see half a file)."""
     if depth.ndim != 2:
         raise FrameError(f"{path}: expected an (H, W) depth map, got shape {depth.shape}")
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
-        np.save(fh, np.ascontiguousarray(depth, dtype=np.float32))
-    os.replace(tmp, path)
+    data = np.ascontiguousarray(depth, dtype=np.float32)
+    write_atomic(path, lambda fh: np.save(fh, data))
 
 
 class DepthExportSink:

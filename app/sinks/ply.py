@@ -1,27 +1,45 @@
-"""Point-cloud export: one binary little-endian PLY per frame, coloured from the camera."""
+"""Point-cloud export: one binary little-endian PLY per frame, coloured by depth."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from lightflow.app.errors import FrameError
 from lightflow.app.geometry import camera_rays
 from lightflow.app.results import FrameResult, RunStats
 from lightflow.app.rig import Rig
+from lightflow.app.sinks.depth_export import write_atomic
 
 PLY_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
 )
 
 
-def image_to_rgb8(image: np.ndarray) -> np.ndarray:
-    """An RGB uint8 view of a uint8 or uint16 camera image (16-bit keeps its top byte)."""
-    if image.dtype == np.uint16:
-        return (image >> 8).astype(np.uint8)
-    return image.astype(np.uint8, copy=False)
+def image_to_rgb8(image: np.ndarray, full_scale: float | None = None) -> np.ndarray:
+    """An RGB uint8 copy of a camera image.
+
+    ``full_scale`` is the sample value of full exposure (4095 for a 12-bit
+    camera, see :attr:`Frame.full_scale`); by default the dtype's maximum.
+    """
+    if full_scale is None:
+        full_scale = 65535.0 if image.dtype == np.uint16 else 255.0
+    if full_scale == 255.0 and image.dtype == np.uint8:
+        return image.copy()
+    return np.clip(image * (255.0 / full_scale), 0, 255).astype(np.uint8)
+
+
+def depth_colors(z: np.ndarray) -> np.ndarray:
+    """Turbo colours (uint8 ``(n, 3)`` RGB) over the 2-98 % range of depths ``z``."""
+    if len(z) == 0:
+        return np.zeros((0, 3), np.uint8)
+    lo, hi = np.percentile(z, [2, 98])
+    t = np.clip((z - lo) / max(hi - lo, 1e-6), 0, 1)
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)
+    # the ends of turbo are nearly black: use its bright middle, 10-90 %
+    return lut[(25.5 + t * 204).astype(np.intp), 0, ::-1].copy()  # BGR -> RGB
 
 
 def depth_to_points(
@@ -57,25 +75,31 @@ def depth_to_points(
 
 
 def write_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
-    """Write a binary little-endian PLY with x y z (float32) and red green blue (uint8)."""
+    """Write a binary little-endian PLY with x y z (float32) and red green blue (uint8).
+
+    Points are in the PLY frame of the format document: metres, right-handed,
+    x right, y up, z from the scene towards the camera, camera at the origin.
+    """
     vertices = np.empty(len(points), dtype=PLY_DTYPE)
     vertices["x"], vertices["y"], vertices["z"] = points.T
     vertices["red"], vertices["green"], vertices["blue"] = colors.T
     header = (
-        "ply\nformat binary_little_endian 1.0\ncomment lightflow depth, camera frame, metres\n"
+        "ply\nformat binary_little_endian 1.0\n"
+        "comment lightflow depth, metres, x right, y up, z towards the camera\n"
         f"element vertex {len(vertices)}\n"
         "property float x\nproperty float y\nproperty float z\n"
         "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
     )
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as fh:
+
+    def write(fh) -> None:
         fh.write(header.encode("ascii"))
         fh.write(vertices.tobytes())
-    os.replace(tmp, path)
+
+    write_atomic(path, write)
 
 
 class PlyExportSink:
-    """Write ``OUT/<stem>.ply`` per frame: coloured points in the camera frame (metres).
+    """Write ``OUT/<stem>.ply`` per frame: points coloured by depth (metres, y up).
 
     Parameters
     ----------
@@ -100,7 +124,9 @@ class PlyExportSink:
             raise FrameError(
                 f"{path}: depth is {w}x{h}, the rig camera is {cam.width}x{cam.height}"
             )
-        points, colors = depth_to_points(result.depth, self._rays, result.frame.image)
+        points, _ = depth_to_points(result.depth, self._rays)
+        colors = depth_colors(points[:, 2])  # camera images are mostly dark: colour by depth
+        points[:, 1:] *= -1  # camera axes (y down, z forward) -> y up, z towards the camera
         write_ply(path, points, colors)
         self.written += 1
 

@@ -1,47 +1,116 @@
-"""Rerun sink: camera image, bands, flows, depth, 3D points and live stats.
+"""Rerun sink: camera image with depth, 3D points, bands, flows and readable live stats.
 
 Entity layout (all per frame on the ``frame`` timeline, plus ``camera_time``)::
 
-    camera                      Pinhole (static): 2D entities below know the intrinsics
-    camera/image                RGB image (JPEG when compress=True)
-    camera/image/bands/<ch>     LineStrips2D, one segment per detected band
-    camera/depth                DepthImage, metres (0 = no estimate)
-    flow/<ch>, flow/log_ratio   Tensor on the analysis grid (colormapped in TensorViews)
-    world/camera                Pinhole (static) at the origin of the 3D view
-    world/camera/points         Points3D, camera frame, metres, subsampled
-    stats/fps|latency_ms|dropped|coverage|mib_per_s|<camera counters>   Scalars
+    world                        ViewCoordinates RDF (static): the camera frame is the world
+    world/camera                 Transform3D (identity) + Pinhole (static); 2D entities below
+    world/camera/image           RGB image
+    world/camera/depth           DepthImage, metres, fixed colour range (0 = no estimate)
+    world/camera/depth_overlay   RGBA: the same colours, see-through, drawn over the image
+    world/camera/bands/<ch>/accepted|rejected   LineStrips2D, one segment per band;
+                                 accepted: passed the checks and kept a flow
+    world/points                 Points3D in world space (NOT under the pinhole, which would
+                                 hide them in 3D), coloured by depth like the depth image
+    flow/<ch>, flow/log_ratio    the light flows in projector px, and their log ratio, as
+                                 colour-mapped images with a fixed range (named in the view)
+    stats/rate/fps, stats/rate/mib_per_s           rates
+    stats/time_ms/latency|processing               milliseconds (the first frame, dominated
+                                                   by compilation, is left out of the plot)
+    stats/coverage/...           percent: "depth on image" (every run) and, with ground
+                                 truth, "moving lit pixels with depth" (eval's coverage)
+    stats/lost/...               counts: dropped frames/results, camera losses, counters
+    log                          TextLog: what the plots leave out (first-frame timing)
+
+The result carries no per-pixel uncertainty, so none is shown.
 
 Network: ``serve`` and ``spawn`` run the Rerun binary as a child process bound to
 127.0.0.1 only; the SDK's own ``serve_grpc`` has no bind option and listens on
-every interface, which would publish camera images to the network.
+every interface, which would publish camera images to the network.  A server
+child dies with lightflow (parent-death signal), even when lightflow is killed.
+
+A full disk while writing an .rrd is one :class:`DriverError` naming the file,
+within a second, and the partial file is removed (see :class:`RerunOutput`).
 """
 
 from __future__ import annotations
 
 import collections
+import ctypes
 import os
+import shutil
 import signal
 import subprocess
 import tempfile
 import threading
+import time
 import uuid
 from pathlib import Path
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
 
 from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.evaluation import evaluate_frame
 from lightflow.app.geometry import camera_rays
-from lightflow.app.results import FrameResult, RunStats
+from lightflow.app.results import BandSet, FrameResult, RunStats
 from lightflow.app.rig import Rig
 from lightflow.app.sinks.ply import depth_to_points, image_to_rgb8
 
+# The SDK's Rust side prints its own multi-line errors when an .rrd write fails; this
+# sink reports that failure as one line itself.  Set before the SDK starts its logger;
+# a RUST_LOG chosen by the user wins.
+_QUIET_SDK = "warn,re_log_encoding=off,re_sdk::recording_stream=off"
+os.environ.setdefault("RUST_LOG", _QUIET_SDK)
+
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
+
 MODES = ("rrd", "spawn", "serve")
-#: display colour of each pattern channel; invalid bands are drawn dimmed
+#: display colour of each pattern channel for accepted bands; rejected ones are grey
 CHANNEL_RGB = {"red": (255, 64, 64), "green": (64, 255, 64), "blue": (80, 140, 255)}
-DIM = 0.3
+REJECTED_RGB = (120, 120, 120)
 READY_TIMEOUT_S = 30.0
+#: default colour range of depth, metres: the rig check's working depths (0.5-1 m) with margin
+DEPTH_RANGE_M = (0.4, 1.2)
+#: colour range of the log flow ratio (dimensionless)
+LOG_RATIO_RANGE = (-1.0, 1.0)
+COLORMAP = "turbo"
+#: opacity of the depth colours over the camera image (0-255)
+OVERLAY_ALPHA = 170
+#: colours of the loss series (others: grey)
+LOST_RGB = {"dropped": (255, 150, 40), "camera_lost": (255, 60, 60)}
+OTHER_RGB = (160, 160, 160)
+#: extras of RunStats that count losses (the others are times, totals or fractions)
+LOSS_WORDS = ("drop", "lost", "missing", "fail", "underrun", "bad")
+#: plot colours: series that share a plot must be told apart without a legend
+TIME_RGB = {"latency": (255, 190, 60), "processing": (90, 170, 255)}
+PR_SET_PDEATHSIG = 1
+#: how often the .rrd writer is checked for failure (a flush), seconds
+CHECK_INTERVAL_S = 1.0
+#: below this much free space a failed write is reported as a full disk
+FULL_DISK_BYTES = 64 << 20
+
+# Google's polynomial approximation of the turbo colormap (the viewer's depth colormap),
+# so 3D points and flows are coloured like the depth image.
+_TURBO = np.array(
+    [
+        [0.13572138, 4.61539260, -42.66032258, 132.13108234, -152.94239396, 59.28637943],
+        [0.09140261, 2.19418839, 4.84296658, -14.18503333, 4.27729857, 2.82956604],
+        [0.10667330, 12.64194608, -60.58204836, 110.36276771, -89.90310912, 27.34824973],
+    ]
+)
+
+
+def turbo_rgb(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """uint8 RGB ``(..., 3)`` of ``values`` on the turbo colormap over ``[lo, hi]`` (clipped).
+
+    NaN maps to black.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    t = np.clip((np.nan_to_num(v, nan=lo) - lo) / (hi - lo), 0.0, 1.0)
+    powers = np.stack([t**k for k in range(6)], axis=-1)
+    rgb = np.clip(powers @ _TURBO.T, 0.0, 1.0)
+    rgb[~np.isfinite(v)] = 0.0
+    return (rgb * 255 + 0.5).astype(np.uint8)
 
 
 def rerun_binary() -> Path:
@@ -66,6 +135,22 @@ def disable_viewer_analytics() -> None:
     )
 
 
+def _die_with_parent(parent_pid: int):
+    """A ``preexec_fn``: the child gets SIGKILL when the thread that started it ends.
+
+    Runs in the child between fork and exec.  If the parent is already gone
+    (it died before ``prctl``), the child ends itself at once.
+    """
+
+    def preexec() -> None:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    return preexec
+
+
 class RerunProcess:
     """A Rerun binary run as a child in its own process group (stopped as a group).
 
@@ -78,14 +163,24 @@ class RerunProcess:
     log_path : Path, optional
         Without ``ready_text``: where its stderr goes (a viewer that outlives us
         must not write into a pipe nobody reads).
+    die_with_parent : bool
+        Kill the child when lightflow ends, however it ends (Linux parent-death
+        signal).  For servers; a viewer window is left to the user.  The signal
+        fires when the *thread* that called :meth:`start` ends, so start it from
+        a thread that lives as long as the run (the main thread).
     """
 
     def __init__(
-        self, args: list[str], ready_text: str | None = None, log_path: Path | None = None
+        self,
+        args: list[str],
+        ready_text: str | None = None,
+        log_path: Path | None = None,
+        die_with_parent: bool = False,
     ):
         self.args = [str(rerun_binary()), *args]
         self.ready_text = ready_text
         self.log_path = log_path
+        self.die_with_parent = die_with_parent
         self.proc: subprocess.Popen | None = None
         self._ready = threading.Event()
         self._tail: collections.deque[str] = collections.deque(maxlen=5)
@@ -93,13 +188,19 @@ class RerunProcess:
 
     def start(self, timeout_s: float = READY_TIMEOUT_S) -> None:
         log = open(self.log_path, "wb") if self.log_path else subprocess.DEVNULL  # noqa: SIM115
+        preexec = _die_with_parent(os.getpid()) if self.die_with_parent else None
+        env = dict(os.environ)
+        if env.get("RUST_LOG") == _QUIET_SDK:
+            del env["RUST_LOG"]  # the server's "Listening" line is an INFO message
         try:
             self.proc = subprocess.Popen(
                 self.args,
+                env=env,
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.PIPE if self.ready_text else log,
                 start_new_session=True,  # its own group: Ctrl-C and close() reach all of it
+                preexec_fn=preexec,
                 text=True,
                 errors="replace",
             )
@@ -159,88 +260,250 @@ class RerunProcess:
             proc.stderr.close()
 
 
-def make_blueprint(rig: Rig) -> rrb.Blueprint:
-    """The default layout: camera + bands, depth, 3D points, flows, stats."""
+class RerunOutput:
+    """A private recording stream on an .rrd file, a spawned viewer or a loopback server.
+
+    Parameters
+    ----------
+    app_id : str
+        Rerun application id.
+    mode : str
+        ``rrd``, ``spawn`` or ``serve``.
+    path : Path, optional
+        The .rrd file (``rrd`` only).
+    port : int
+        Port of the viewer or server on 127.0.0.1.
+    save_path : Path, optional
+        With ``spawn`` or ``serve``: also write everything to this .rrd, so that
+        closing the viewer loses nothing.
+
+    Attributes
+    ----------
+    rec : rerun.RecordingStream
+        Log to this; call :meth:`pump` after each frame.
+    process : RerunProcess or None
+        The viewer/server child.
+
+    Notes
+    -----
+    The SDK writes an .rrd on a thread of its own and reports a failed write
+    (a full disk) only when flushed.  :meth:`pump` flushes at most every
+    :data:`CHECK_INTERVAL_S`, so a full disk stops the run within a second as one
+    :class:`DriverError` line, and the partial file is removed.  (The SDK's own
+    stream of bytes, ``binary_stream``, cannot be written piecewise: each read
+    is a complete .rrd of its own.)
+    """
+
+    def __init__(
+        self, app_id: str, mode: str, path: Path | None = None, port: int = 9876,
+        save_path: Path | None = None,
+    ):
+        # a private stream: other code (or tests) using the global recording is unaffected
+        self.rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())
+        self.mode = mode
+        self.path = path
+        self.port = port
+        self.url = f"rerun+http://127.0.0.1:{port}/proxy"
+        self.process: RerunProcess | None = None
+        self.save_path = Path(save_path) if save_path is not None and mode != "rrd" else None
+        self._failed = False
+        self._next_check = 0.0
+        if mode == "rrd":
+            self._open_file()
+        elif mode == "serve":
+            self._open_server()
+        else:
+            self._open_viewer()
+
+    def _open_file(self) -> None:
+        assert self.path is not None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.save(self.path)
+        except (OSError, RuntimeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) else str(exc)
+            raise DriverError(f"{self.path}: cannot write the Rerun file: {reason}") from None
+
+    def _open_server(self) -> None:
+        disable_viewer_analytics()
+        self.process = RerunProcess(
+            ["--serve-grpc", "--bind", "127.0.0.1", "--port", str(self.port)],
+            ready_text="Listening for gRPC connections",
+            die_with_parent=True,
+        )
+        self.process.start()
+        try:
+            self._connect()
+        except BaseException:
+            self.process.stop()
+            raise
+
+    def _open_viewer(self) -> None:
+        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise DriverError(
+                "rerun: no display to open a viewer on (DISPLAY is not set); "
+                "write a file with --rrd FILE, or use --serve"
+            )
+        disable_viewer_analytics()
+        # the viewer hosts its own gRPC server: keep it on loopback as well.  It is left
+        # running after the sink closes: it is the user's window onto the results.
+        log = Path(tempfile.gettempdir()) / f"lightflow-rerun-viewer-{self.port}.log"
+        self.process = RerunProcess(
+            ["--bind", "127.0.0.1", "--port", str(self.port)], log_path=log
+        )
+        self.process.start()
+        self._connect()
+
+    def _connect(self) -> None:
+        if self.save_path is None:
+            self.rec.connect_grpc(self.url)
+            return
+        try:
+            self.save_path.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.set_sinks(rr.GrpcSink(self.url), rr.FileSink(self.save_path))
+        except (OSError, RuntimeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) else str(exc)
+            raise DriverError(f"{self.save_path}: cannot write the Rerun file: {reason}") from None
+
+    def pump(self, force: bool = False) -> None:
+        """Check that the .rrd is being written (at most every CHECK_INTERVAL_S; no-op else)."""
+        if self.mode != "rrd" or self._failed:
+            return
+        now = time.monotonic()
+        if not force and now < self._next_check:
+            return
+        self._next_check = now + CHECK_INTERVAL_S
+        try:
+            self.rec.flush()
+        except RuntimeError:
+            self._fail()
+
+    def _fail(self) -> None:
+        self._failed = True
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError:
+            free = 0
+        reason = (
+            "the disk is full" if free < FULL_DISK_BYTES
+            else "the write failed: a file size limit, or the disk was full"
+        )
+        self.discard()
+        raise DriverError(
+            f"{self.path}: cannot write the Rerun file ({reason}); the partial file was removed"
+        ) from None
+
+    def discard(self) -> None:
+        """Stop writing and delete the .rrd file: after a failure nothing half-written is left."""
+        if self.mode != "rrd":
+            return
+        self._failed = True
+        try:
+            self.rec.disconnect()
+        except RuntimeError:
+            pass  # the writer already failed; the file goes anyway
+        self.path.unlink(missing_ok=True)
+
+    def close(self) -> None:
+        """Flush and disconnect (the .rrd is complete afterwards); stop a server child.
+
+        A viewer that died becomes one :class:`DriverError` line.
+        """
+        try:
+            if self._failed:
+                return
+            if self.mode == "rrd":
+                self.pump(force=True)
+                self.rec.disconnect()
+                return
+            try:
+                self.rec.flush()
+                self.rec.disconnect()
+            except RuntimeError as exc:
+                # the SDK reports a viewer that died or was closed as a severed connection
+                reason = self.process.exit_reason() if self.process else None
+                saved = f" (the run is in {self.save_path})" if self.save_path else ""
+                raise DriverError(
+                    (f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}") + saved
+                ) from None
+        finally:
+            if self.mode == "serve" and self.process is not None:
+                self.process.stop()
+
+
+def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
+                   depth_range_m: tuple[float, float]) -> rrb.Blueprint:
+    """The default layout, what an operator needs first: image with depth, then 3D, then details.
+
+    Every view's name says what it shows and in which unit; plots that share
+    a unit share a view, and no legend covers a plot (series are told apart by
+    the colours named in the title).
+    """
     channels = [pat.channel for _, pat in rig.patterns]
-    colormap = rrb.TensorScalarMapping(colormap="turbo")
-    flows = [
-        rrb.TensorView(origin=f"flow/{ch}", name=f"flow {ch}", scalar_mapping=colormap)
+    lo, hi = flow_range_px
+    near, far = depth_range_m
+    details = [rrb.Spatial2DView(
+        origin="world/camera", contents=["$origin/depth"], name=f"depth {near:g}-{far:g} m",
+    )]  # fmt: skip
+    details += [
+        rrb.Spatial2DView(origin=f"flow/{ch}", name=f"{ch} flow {lo:g}-{hi:g} projector px")
         for ch in channels
     ]
-    flows.append(rrb.TensorView(origin="flow/log_ratio", name="log ratio", scalar_mapping=colormap))
+    r_lo, r_hi = LOG_RATIO_RANGE
+    details.append(
+        rrb.Spatial2DView(origin="flow/log_ratio", name=f"log flow ratio {r_lo:g} to {r_hi:g}")
+    )
+
+    def plot(origin: str, name: str, **kwargs) -> rrb.TimeSeriesView:
+        # no legend over the plot: series sharing a plot have fixed colours named in the title
+        return rrb.TimeSeriesView(
+            origin=origin, name=name, plot_legend=rrb.PlotLegend(visible=False), **kwargs
+        )
+
+    stats = rrb.Grid(
+        plot("stats/rate/fps", "frame rate (fps)"),
+        plot("stats/time_ms", "ms: yellow latency, blue processing"),
+        plot("stats/coverage", "%: blue depth on image, green coverage"),
+        plot("stats/lost", "lost: orange dropped, red camera, grey other"),
+        plot("stats/rate/mib_per_s", "data rate (MiB/s)"),
+        rrb.TextLogView(origin="log", name="notes"),
+        grid_columns=2,
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial2DView(
-                    origin="camera",
-                    contents=["camera/image", "camera/image/bands/**"],
-                    name="camera + bands",
+                    origin="world/camera",
+                    contents=["$origin/image", "$origin/depth_overlay"],
+                    name=f"camera + depth, turbo {near:g} m (blue) to {far:g} m (red)",
                 ),
-                rrb.Spatial2DView(origin="camera", contents=["camera/depth"], name="depth"),
+                rrb.Spatial3DView(
+                    origin="world",
+                    # the depth image would be back-projected a second time under the pinhole
+                    # and the image plane would hide the points behind it from this eye
+                    contents=["+ $origin/**", "- /world/camera/depth", "- /world/camera/bands/**",
+                              "- /world/camera/depth_overlay", "- /world/camera/image"],
+                    name="3D points, metres, coloured by depth",
+                    eye_controls=rrb.EyeControls3D(
+                        position=(0.45, -0.35, -0.1), look_target=(0.0, 0.0, 0.7),
+                        eye_up=(0.0, -1.0, 0.0),
+                    ),
+                ),
             ),
             rrb.Vertical(
-                rrb.Spatial3DView(origin="world", name="points (camera frame)"),
-                rrb.Horizontal(*flows),
-                rrb.TimeSeriesView(origin="stats", name="stats"),
-                row_shares=[3, 2, 2],
+                rrb.Spatial2DView(
+                    origin="world/camera",
+                    contents=["$origin/image", "$origin/bands/**"],
+                    name="bands: colour accepted, grey rejected",
+                ),
+                rrb.Grid(*details, grid_columns=2),
+                stats,
+                row_shares=[3, 3, 5],
             ),
+            column_shares=[3, 2],
         ),
         collapse_panels=True,
     )
-
-
-def open_stream(
-    app_id: str, mode: str, path: Path | None = None, port: int = 9876
-) -> tuple[rr.RecordingStream, RerunProcess | None]:
-    """A private recording stream on a file, a spawned viewer or a loopback server.
-
-    Returns the stream and the viewer/server child process (None for a file).
-    The viewer and the server listen on 127.0.0.1 only; viewer analytics are off.
-    """
-    # a private stream: other code (or tests) using the global recording is unaffected
-    rec = rr.RecordingStream(app_id, recording_id=uuid.uuid4())
-    url = f"rerun+http://127.0.0.1:{port}/proxy"
-    if mode == "rrd":
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rec.save(path)
-        return rec, None
-    if mode == "serve":
-        disable_viewer_analytics()
-        process = RerunProcess(
-            ["--serve-grpc", "--bind", "127.0.0.1", "--port", str(port)],
-            ready_text="Listening for gRPC connections",
-        )
-        process.start()
-        try:
-            rec.connect_grpc(url)
-        except BaseException:
-            process.stop()
-            raise
-        return rec, process
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise DriverError(
-            "rerun: no display to open a viewer on (DISPLAY is not set); "
-            "write a file with --rrd FILE, or use --serve"
-        )
-    disable_viewer_analytics()
-    # the viewer hosts its own gRPC server: keep it on loopback as well.  It is left
-    # running after the sink closes: it is the user's window onto the results.
-    log = Path(tempfile.gettempdir()) / f"lightflow-rerun-viewer-{port}.log"
-    process = RerunProcess(["--bind", "127.0.0.1", "--port", str(port)], log_path=log)
-    process.start()
-    rec.connect_grpc(url)
-    return rec, process
-
-
-def flush_stream(rec: rr.RecordingStream, process: RerunProcess | None) -> None:
-    """Flush and disconnect; a viewer that died becomes one DriverError line."""
-    try:
-        rec.flush()
-        rec.disconnect()
-    except RuntimeError as exc:
-        # the SDK reports a viewer that died or was closed as a severed connection
-        reason = process.exit_reason() if process else None
-        raise DriverError(f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}") from None
 
 
 class RerunSink:
@@ -265,6 +528,13 @@ class RerunSink:
         Port of the server (``serve``) or viewer (``spawn``) on 127.0.0.1.
     image_plane_distance : float
         Where the camera frustum's image plane is drawn in 3D, metres.
+    depth_range_m : (float, float)
+        Fixed colour range of depth and of the 3D points (near, far), metres.
+    flow_range_px : (float, float), optional
+        Fixed colour range of the flows in projector pixels; default 0 to the
+        widest line pitch of the rig's uniform patterns (40 px if none).
+    save_path : str or Path, optional
+        With ``spawn`` or ``serve``: also keep everything in this .rrd.
     """
 
     def __init__(
@@ -278,11 +548,16 @@ class RerunSink:
         port: int = 9876,
         image_plane_distance: float = 0.2,
         jpeg_quality: int = 90,
+        depth_range_m: tuple[float, float] = DEPTH_RANGE_M,
+        flow_range_px: tuple[float, float] | None = None,
+        save_path: str | Path | None = None,
     ):
         if mode not in MODES:
             raise ConfigError(f"rerun mode: expected one of {', '.join(MODES)}, got {mode!r}")
         if (mode == "rrd") != (path is not None):
             raise ConfigError("rerun: a path is needed for (and only for) mode 'rrd'")
+        if not 0 <= depth_range_m[0] < depth_range_m[1]:
+            raise ConfigError(f"rerun depth range: expected 0 <= near < far, got {depth_range_m}")
         self.rig = rig
         self.mode = mode
         self.path = Path(path) if path is not None else None
@@ -291,31 +566,42 @@ class RerunSink:
         self.max_points = max_points
         self.port = port
         self.image_plane_distance = image_plane_distance
+        self.depth_range_m = (float(depth_range_m[0]), float(depth_range_m[1]))
+        if flow_range_px is None:
+            pitches = [pat.pitch_px for _, pat in rig.patterns if pat.kind == "uniform"]
+            flow_range_px = (0.0, max(pitches) if pitches else 40.0)
+        self.flow_range_px = (float(flow_range_px[0]), float(flow_range_px[1]))
         self.url = f"rerun+http://127.0.0.1:{port}/proxy"
-        self._process: RerunProcess | None = None
         self._rays = camera_rays(rig.camera).astype(np.float32)
         self._channels = [pat.channel for _, pat in rig.patterns]
         self._closed = False
+        self._series_named: set[str] = set()
         self.frames_logged = 0
 
-        self.rec, self._process = open_stream(app_id, mode, self.path, port)
+        self.save_path = Path(save_path) if save_path is not None and mode != "rrd" else None
+        self.output = RerunOutput(app_id, mode, self.path, port, save_path=self.save_path)
+        self.rec = self.output.rec
         try:
-            self.rec.send_blueprint(make_blueprint(rig))
+            self.rec.send_blueprint(make_blueprint(rig, self.flow_range_px, self.depth_range_m))
             self._log_static()
+            self.output.pump()
         except BaseException:
+            self.output.discard()
             self.close()  # do not leave a server child behind
             raise
 
+    @property
+    def _process(self) -> RerunProcess | None:
+        return self.output.process
+
     def _log_static(self) -> None:
         cam = self.rig.camera
-        pinhole = rr.Pinhole(
-            image_from_camera=cam.K,
-            width=cam.width,
-            height=cam.height,
-            camera_xyz=rr.ViewCoordinates.RDF,
-        )
-        self.rec.log("camera", pinhole, static=True)
-        self.rec.log(
+        rec = self.rec
+        rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        # the camera sits at the world origin; its pose is logged apart from the pinhole
+        # so that a moving camera (or a world frame) only changes this transform
+        rec.log("world/camera", rr.Transform3D(translation=[0.0, 0.0, 0.0]), static=True)
+        rec.log(
             "world/camera",
             rr.Pinhole(
                 image_from_camera=cam.K,
@@ -326,7 +612,17 @@ class RerunSink:
             ),
             static=True,
         )
-        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        for name, rgb in TIME_RGB.items():
+            rec.log(f"stats/time_ms/{name}", rr.SeriesLines(colors=rgb, names=f"{name} (ms)"),
+                    static=True)
+        for name, rgb in LOST_RGB.items():
+            rec.log(f"stats/lost/{name}", rr.SeriesLines(colors=rgb, names=name), static=True)
+        rec.log("stats/coverage/depth_on_image",
+                rr.SeriesLines(colors=(90, 170, 255), names="depth on image (%)"), static=True)
+        rec.log("stats/coverage/moving_lit_with_depth",
+                rr.SeriesLines(colors=(120, 220, 120),
+                               names="moving lit pixels with depth (%), as in eval"),
+                static=True)
 
     def write(self, result: FrameResult, stats: RunStats) -> None:
         """Log one frame's image, bands, flows, depth, points and the run statistics."""
@@ -336,65 +632,118 @@ class RerunSink:
         rec.set_time("camera_time", duration=frame.timestamp)
 
         rgb8 = image_to_rgb8(frame.image)
-        image = rr.Image(rgb8, color_model="RGB")
-        rec.log("camera/image", image.compress(self.jpeg_quality) if self.compress else image)
+        image = rr.Image(rgb8, color_model="RGB", draw_order=0.0)
+        rec.log("world/camera/image", image.compress(self.jpeg_quality) if self.compress else image)
+        flows = dict(zip(self._channels, result.flows_grid, strict=False))
         for bands in result.bands:
-            rec.log(f"camera/image/bands/{bands.channel}", _band_strips(bands))
+            accepted, rejected = _band_strips(bands, flows.get(bands.channel), result.stride)
+            rec.log(f"world/camera/bands/{bands.channel}/accepted", accepted)
+            rec.log(f"world/camera/bands/{bands.channel}/rejected", rejected)
+        lo, hi = self.flow_range_px
         for channel, flow in zip(self._channels, result.flows_grid, strict=False):
-            rec.log(f"flow/{channel}", rr.Tensor(flow.astype(np.float32), dim_names=("y", "x")))
-        rec.log(
-            "flow/log_ratio",
-            rr.Tensor(result.log_ratio_grid.astype(np.float32), dim_names=("y", "x")),
-        )
-        # Rerun treats depth 0 as "no measurement"; NaN is not documented as such
+            rec.log(f"flow/{channel}", rr.Image(turbo_rgb(flow, lo, hi)))
+        rec.log("flow/log_ratio", rr.Image(turbo_rgb(result.log_ratio_grid, *LOG_RATIO_RANGE)))
+        # Rerun treats depth 0 as "no measurement"; hovering shows metres
         depth = np.nan_to_num(result.depth.astype(np.float32), nan=0.0)
-        rec.log("camera/depth", rr.DepthImage(depth, meter=1.0, colormap="turbo"))
-        points, colors = depth_to_points(result.depth, self._rays, frame.image, self.max_points)
-        rec.log("world/camera/points", rr.Points3D(points, colors=colors, radii=0.0015))
-        rec.log("stats/fps", rr.Scalars(stats.fps))
-        rec.log("stats/latency_ms", rr.Scalars(stats.latency_ms))
-        rec.log("stats/dropped", rr.Scalars(float(stats.dropped)))
-        rec.log("stats/coverage", rr.Scalars(result.coverage))
-        rec.log("stats/mib_per_s", rr.Scalars(stats.mib_per_s))
-        rec.log("stats/camera_lost", rr.Scalars(float(stats.camera_lost)))
-        # transport counters of live cameras: underruns, failures, missing packets, ...
-        for key, value in stats.extra.items():
-            if isinstance(value, (int, float)):
-                rec.log(f"stats/{key}", rr.Scalars(float(value)))
+        rec.log("world/camera/depth", rr.DepthImage(
+            depth, meter=1.0, colormap=COLORMAP, depth_range=self.depth_range_m, draw_order=1.0,
+        ))  # fmt: skip
+        # over the camera image: the same colours, see-through, and nothing where no depth
+        overlay = np.zeros((*depth.shape, 4), np.uint8)
+        has = depth > 0
+        overlay[has, :3] = turbo_rgb(depth[has], *self.depth_range_m)
+        overlay[has, 3] = OVERLAY_ALPHA
+        # the viewer ignores the alpha channel of an image whose opacity is exactly 1
+        rec.log("world/camera/depth_overlay",
+                rr.Image(overlay, color_model="RGBA", draw_order=1.0, opacity=0.99))
+        points, _ = depth_to_points(result.depth, self._rays, None, self.max_points)
+        rec.log("world/points", rr.Points3D(
+            # a few screen points wide whatever the zoom: sparse depth stays visible
+            points, colors=turbo_rgb(points[:, 2], *self.depth_range_m),
+            radii=rr.components.Radius.ui_points(2.5),
+        ))  # fmt: skip
+        self._log_stats(result, stats)
         self.frames_logged += 1
+        self.output.pump()
+
+    def _log_stats(self, result: FrameResult, stats: RunStats) -> None:
+        rec = self.rec
+        rec.log("stats/rate/fps", rr.Scalars(stats.fps))
+        rec.log("stats/rate/mib_per_s", rr.Scalars(stats.mib_per_s))
+        processing = result.timings_ms.get("total")
+        if self.frames_logged == 0:
+            # compilation and warm-up: tens of seconds that would flatten every later point
+            text = f"frame {result.frame.index}: latency {stats.latency_ms:.0f} ms"
+            if processing is not None:
+                text += f", processing {processing:.0f} ms"
+            rec.log("log", rr.TextLog(
+                text + " (first frame: includes compilation; left out of the time plot)",
+                level=rr.TextLogLevel.INFO,
+            ))  # fmt: skip
+        else:
+            rec.log("stats/time_ms/latency", rr.Scalars(stats.latency_ms))
+            if processing is not None:
+                rec.log("stats/time_ms/processing", rr.Scalars(processing))
+        rec.log("stats/coverage/depth_on_image", rr.Scalars(100.0 * result.coverage))
+        truth = result.frame.extras.get("truth")
+        if truth is not None:
+            m = evaluate_frame(result.depth, truth, n_projectors=len(self.rig.projectors))
+            if np.isfinite(m.coverage):
+                rec.log("stats/coverage/moving_lit_with_depth", rr.Scalars(100.0 * m.coverage))
+        rec.log("stats/lost/dropped", rr.Scalars(float(stats.dropped)))
+        rec.log("stats/lost/camera_lost", rr.Scalars(float(stats.camera_lost)))
+        # queue drops and the loss counters of live cameras (underruns, missing packets,
+        # ...); other extras are times or totals, not losses, and have their own plots
+        for key, value in stats.extra.items():
+            if isinstance(value, (int, float)) and any(w in key for w in LOSS_WORDS):
+                if key not in self._series_named:
+                    self._series_named.add(key)
+                    rec.log(f"stats/lost/{key}", rr.SeriesLines(colors=OTHER_RGB, names=key),
+                            static=True)
+                rec.log(f"stats/lost/{key}", rr.Scalars(float(value)))
 
     def close(self) -> None:
         """Flush everything (the .rrd is complete afterwards) and stop a server child."""
         if self._closed:
             return
         self._closed = True
-        try:
-            flush_stream(self.rec, self._process)
-        finally:
-            if self.mode == "serve" and self._process is not None:
-                self._process.stop()
+        self.output.close()
 
     def describe(self) -> str:
         """How the user gets to see what was logged."""
         if self.mode == "rrd":
             n = self.frames_logged
             return f"Rerun: {n} frames in {self.path}; open with `rerun {self.path}`"
+        saved = f"; saved in {self.save_path}" if self.save_path else ""
         if self.mode == "serve":
-            return f"Rerun server on 127.0.0.1:{self.port}: `rerun --connect {self.url}`"
-        return f"Rerun viewer on 127.0.0.1:{self.port} ({self.frames_logged} frames sent)"
+            return f"Rerun server on 127.0.0.1:{self.port}: `rerun --connect {self.url}`{saved}"
+        return f"Rerun viewer on 127.0.0.1:{self.port} ({self.frames_logged} frames sent){saved}"
 
 
-def _band_strips(bands) -> rr.LineStrips2D:
-    """One horizontal segment per band, in the channel's colour, dimmed when invalid."""
+def _band_strips(
+    bands: BandSet, flow_grid: np.ndarray | None, stride: int
+) -> tuple[rr.LineStrips2D, rr.LineStrips2D]:
+    """Accepted bands in the channel's colour, rejected ones thinner in grey.
+
+    One horizontal segment per band, from its start to its end column.  A band
+    is accepted when it passed the band checks *and* its grid cell kept a flow:
+    the bands of a static wall pass the first test but give no flow, and are
+    drawn as rejected.
+    """
     rows = np.asarray(bands.rows, dtype=np.float32)
+    starts = np.asarray(bands.starts, np.float32)
+    ends = np.asarray(bands.ends, np.float32)
     segments = np.stack(
-        [
-            np.stack([np.asarray(bands.starts, np.float32), rows], axis=-1),
-            np.stack([np.asarray(bands.ends, np.float32), rows], axis=-1),
-        ],
-        axis=1,
+        [np.stack([starts, rows], axis=-1), np.stack([ends, rows], axis=-1)], axis=1
     )
-    base = np.array(CHANNEL_RGB.get(bands.channel, (255, 255, 255)), dtype=np.float32)
-    valid = np.asarray(bands.valid, dtype=bool)
-    colors = np.where(valid[:, None], base, base * DIM).astype(np.uint8)
-    return rr.LineStrips2D(segments, colors=colors, radii=0.5)
+    accepted = np.asarray(bands.valid, dtype=bool).copy()
+    if flow_grid is not None and len(rows):
+        gh, gw = flow_grid.shape
+        gy = np.clip((rows // stride).astype(np.intp), 0, gh - 1)
+        gx = np.clip((0.5 * (starts + ends) // stride).astype(np.intp), 0, gw - 1)
+        accepted &= np.isfinite(flow_grid[gy, gx])
+    rgb = CHANNEL_RGB.get(bands.channel, (255, 255, 255))
+    return (
+        rr.LineStrips2D(segments[accepted], colors=rgb, radii=0.6, draw_order=3.0),
+        rr.LineStrips2D(segments[~accepted], colors=REJECTED_RGB, radii=0.4, draw_order=2.0),
+    )
