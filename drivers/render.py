@@ -551,6 +551,14 @@ def _accept(sa, sm, sb, n_sub, n_proj):
 
 
 @nb.njit(cache=True)
+def _unchanged(sa, sm, sb):
+    for k in range(sa.shape[0]):
+        if sa[k] != sm[k] or sm[k] != sb[k]:
+            return False
+    return True
+
+
+@nb.njit(cache=True)
 def _add_segment(acc, sa, sb, dt, n_sub, n_proj, tables, pat_proj, pat_channel, crosstalk,
                  ambient):  # fmt: skip
     """Add the light of one segment between knot states ``sa`` and ``sb`` (duration ``dt``)."""
@@ -670,7 +678,17 @@ def _integrate(
         tm = 0.5 * (tl + tr)
         ok &= _knot(mid, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
                     suby, tm)  # fmt: skip
-        split = d < dmin or (d < d_lin and not _accept(left, mid, right, n_sub, n_proj))
+        # a static surface seen unchanged at both ends and the middle needs no
+        # minimum knot spacing (the spacing guards against moving objects)
+        still = (
+            d < dmin
+            and left[0] == mid[0] == right[0]
+            and (left[0] < 0 or prims[int(left[0]), 1] == 1.0)
+            and _unchanged(left, mid, right)
+        )
+        split = (d < dmin and not still) or (
+            d < d_lin and not _accept(left, mid, right, n_sub, n_proj)
+        )
         if split and top + 1 < MAX_KNOTS:
             st_d[top] = d + 1
             top += 1
@@ -798,3 +816,15 @@ def knot_depths(motion_px: float) -> tuple[int, int]:
     # knots every exposure / 2**(d + 1)
     dmin = int(np.clip(math.ceil(math.log2(max(motion_px / MIN_STEP_PX, 1.0))) - 1, 0, dmax))
     return dmin, dmax
+
+
+@nb.njit(cache=True)
+def project_to_projector(pp, points):
+    """Projector pixels ``(n, 2)`` of camera-frame ``points`` ``(n, 3)`` with the kernel's model.
+
+    ``pp`` is one row of :func:`lightflow.drivers.synthetic.pack_projectors`.
+    """
+    out = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        out[i, 0], out[i, 1] = _project_u(pp, points[i, 0], points[i, 1], points[i, 2])
+    return out
