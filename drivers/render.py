@@ -248,6 +248,66 @@ def _line_light(foot, u, sigma):
     return total
 
 
+@nb.njit(cache=True)
+def _pixel_mc(
+    i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
+    t0, exposure, k0, samples, offsets,
+):  # fmt: skip
+    """Stratified Monte Carlo mean radiance (3 channels) of pixel ``(i, j)`` over the exposure.
+
+    Uses the ``samples`` rows ``k0 ..`` of ``offsets`` for the pixel area and
+    stratifies time over ``t0 .. t0 + exposure`` with them.
+    """
+    n_pat = pat_proj.shape[0]
+    n_proj = projs.shape[0]
+    acc0 = 0.0
+    acc1 = 0.0
+    acc2 = 0.0
+    # Cranley-Patterson rotation: every pixel gets its own phase of the
+    # stratified pattern, so no sampling error is shared by all pixels
+    h1 = ((i * 73856093) ^ (j * 19349663)) & 0xFFFFFF
+    ph_t = (h1 % 4093) / 4093.0
+    ph_x = ((h1 // 4093) % 61) / 61.0
+    ph_y = ((h1 // 249673) % 67) / 67.0
+    for kk in range(samples):
+        k = k0 + kk
+        t = t0 + exposure * (((kk + 0.5) / samples + ph_t) % 1.0)
+        ox = ((offsets[k, 1] + 0.5 + ph_x) % 1.0) - 0.5
+        oy = ((offsets[k, 2] + 0.5 + ph_y) % 1.0) - 0.5
+        dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
+        dy = rays[i, j, 1] + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
+        dz = 1.0
+        s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, dz, t, tex, np.inf)
+        if pi < 0:
+            continue
+        X = s * dx
+        Y = s * dy
+        Z = s * dz
+        # face the normal towards the camera
+        if nx * X + ny * Y + nz * Z > 0:
+            nx, ny, nz = -nx, -ny, -nz
+        acc0 += alb * ambient[0]
+        acc1 += alb * ambient[1]
+        acc2 += alb * ambient[2]
+        for q in range(n_proj):
+            u, cosi, dist2 = _lit_by(
+                prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
+            )
+            if cosi <= 0.0:
+                continue
+            irr = alb * proj_power[q] * cosi / dist2
+            for m in range(n_pat):
+                if pat_proj[m] != q:
+                    continue
+                light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * irr
+                c = pat_channel[m]
+                acc0 += crosstalk[0, c] * light
+                acc1 += crosstalk[1, c] * light
+                acc2 += crosstalk[2, c] * light
+    return acc0 / samples, acc1 / samples, acc2 / samples
+
+
 @nb.njit(cache=True, parallel=True)
 def render_exposure(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
@@ -256,63 +316,345 @@ def render_exposure(
 ):  # fmt: skip
     """Integrate radiance over the exposure for every pixel into ``out`` (h, w, 3).
 
-    ``rays``: (h, w, 3) camera rays (z = 1) at pixel centres; ``ray_dx``/``ray_dy``
-    their change per pixel (for sub-pixel samples).  ``offsets``: (samples, 3)
-    stratified (time fraction, dx, dy).  ``pat_foot``: (n_pat, max_lines, 2)
-    line footprints padded, ``pat_nfoot`` the counts.
+    The slow reference form: ``samples`` stratified samples of time and pixel
+    area for every pixel.  ``rays``: (h, w, 3) camera rays (z = 1) at pixel
+    centres; ``ray_dx``/``ray_dy`` their change per pixel (for sub-pixel
+    samples).  ``offsets``: (samples, 3) stratified (time fraction, dx, dy).
+    ``pat_foot``: (n_pat, max_lines, 2) line footprints padded, ``pat_nfoot``
+    the counts.
     """
     h, w = rays.shape[:2]
-    n_pat = pat_proj.shape[0]
-    n_proj = projs.shape[0]
     for i in nb.prange(h):
-        foot_buf = pat_foot  # noqa: F841 (keeps numba from copying)
         for j in range(w):
-            acc0 = 0.0
-            acc1 = 0.0
-            acc2 = 0.0
-            # Cranley-Patterson rotation: every pixel gets its own phase of the
-            # stratified pattern, so no sampling error is shared by all pixels
-            h1 = ((i * 73856093) ^ (j * 19349663)) & 0xFFFFFF
-            ph_t = (h1 % 4093) / 4093.0
-            ph_x = ((h1 // 4093) % 61) / 61.0
-            ph_y = ((h1 // 249673) % 67) / 67.0
-            for k in range(samples):
-                t = t0 + exposure * ((offsets[k, 0] + ph_t) % 1.0)
-                ox = ((offsets[k, 1] + 0.5 + ph_x) % 1.0) - 0.5
-                oy = ((offsets[k, 2] + 0.5 + ph_y) % 1.0) - 0.5
-                dx = rays[i, j, 0] + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
-                dy = rays[i, j, 1] + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
-                dz = 1.0
-                s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, dz, t, tex, np.inf)
-                if pi < 0:
-                    continue
-                X = s * dx
-                Y = s * dy
-                Z = s * dz
-                # face the normal towards the camera
-                if nx * X + ny * Y + nz * Z > 0:
-                    nx, ny, nz = -nx, -ny, -nz
-                acc0 += alb * ambient[0]
-                acc1 += alb * ambient[1]
-                acc2 += alb * ambient[2]
-                for q in range(n_proj):
-                    u, cosi, dist2 = _lit_by(
-                        prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
-                    )
-                    if cosi <= 0.0:
-                        continue
-                    irr = alb * proj_power[q] * cosi / dist2
-                    for m in range(n_pat):
-                        if pat_proj[m] != q:
-                            continue
-                        light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * irr
-                        c = pat_channel[m]
-                        acc0 += crosstalk[0, c] * light
-                        acc1 += crosstalk[1, c] * light
-                        acc2 += crosstalk[2, c] * light
-            out[i, j, 0] = acc0 / samples
-            out[i, j, 1] = acc1 / samples
-            out[i, j, 2] = acc2 / samples
+            a0, a1, a2 = _pixel_mc(
+                i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
+                proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk,
+                ambient, t0, exposure, 0, samples, offsets,
+            )  # fmt: skip
+            out[i, j, 0] = a0
+            out[i, j, 1] = a1
+            out[i, j, 2] = a2
+
+
+# ---------------------------------------------------------------------------
+# Fast form: exact integration of the line light over a pixel x exposure box
+#
+# The exposure is cut into KNOTS - 1 segments.  Where the surface seen by a
+# pixel and its 3x3 neighbours is one lit primitive at both knots of a
+# segment, the projector column u is taken affine in the pixel offset (x, y)
+# and linear in time over the segment, and the line light (a box convolved
+# with a Gaussian, i.e. a difference of erfs) is integrated exactly over that
+# pixel x time box with the n-th antiderivatives of erf.  Only the segments
+# where that fails (object edges, shadow edges, texture, a surface that
+# appears or leaves) are sampled by the Monte Carlo form above, with their
+# share of the samples.
+# ---------------------------------------------------------------------------
+
+KNOTS = 3  # exposure start, middle and end: two segments
+# widths (projector px) below this are integrated by their midpoint; the error
+# is about (k w)^2 / 24 of the light, < 1e-4
+MIN_WIDTH = 0.02
+_SQRT_PI = math.sqrt(math.pi)
+
+
+@nb.njit(cache=True, inline="always")
+def _erf_antiderivative(n, x):
+    """The n-th antiderivative of erf (n = 0..3), zero constants chosen so F_n' = F_{n-1}."""
+    e = math.erf(x)
+    if n == 0:
+        return e
+    g = math.exp(-x * x) / _SQRT_PI
+    if n == 1:
+        return x * e + g
+    if n == 2:
+        return (2.0 * x * x + 1.0) * e / 4.0 + 0.5 * x * g
+    return (2.0 * x * x * x + 3.0 * x) * e / 12.0 + (x * x + 1.0) * g / 6.0
+
+
+@nb.njit(cache=True)
+def box_erf_mean(k, lo, w, n):
+    """Mean of ``erf(k u)`` for ``u = lo + sum_i w[i] s_i`` over the unit cube of ``s``.
+
+    Parameters
+    ----------
+    k : float
+        Scale of the erf argument.
+    lo : float
+        ``u`` at the cube's origin.
+    w : numpy.ndarray
+        Widths (signed, not too small: the result divides by their product).
+    n : int
+        How many of ``w`` to use (0 .. 3).
+
+    Returns
+    -------
+    float
+        The exact mean, from the n-th antiderivative of erf at the cube's corners.
+    """
+    total = 0.0
+    for corner in range(1 << n):
+        x = lo
+        sign = 1.0
+        for d in range(n):
+            if (corner >> d) & 1:
+                x += w[d]
+            else:
+                sign = -sign
+        total += sign * _erf_antiderivative(n, k * x)
+    den = 1.0
+    for d in range(n):
+        den *= k * w[d]
+    return total / den
+
+
+@nb.njit(cache=True)
+def _line_light_box(foot, u0, w3, sigma, wbuf):
+    """Mean light of a line set over u = u0 + sum_i w3[i] (s_i - 1/2), s in the unit cube."""
+    n = 0
+    lo = u0
+    span = 0.0
+    for d in range(3):
+        wd = w3[d]
+        if abs(wd) >= MIN_WIDTH:
+            wbuf[n] = wd
+            n += 1
+            lo -= 0.5 * wd
+            span += abs(wd)
+    umin = u0 - 0.5 * span
+    umax = u0 + 0.5 * span
+    nf = foot.shape[0]
+    reach = umin - 4.0 * sigma - 1.0
+    a = 0
+    b = nf
+    while a < b:
+        mid = (a + b) // 2
+        if foot[mid, 1] < reach:
+            a = mid + 1
+        else:
+            b = mid
+    k = 1.0 / (math.sqrt(2.0) * sigma)
+    total = 0.0
+    for i in range(a, nf):
+        if foot[i, 0] > umax + 4.0 * sigma + 1.0:
+            break
+        total += 0.5 * (
+            box_erf_mean(k, lo - foot[i, 0], wbuf, n) - box_erf_mean(k, lo - foot[i, 1], wbuf, n)
+        )
+    return total
+
+
+@nb.njit(cache=True)
+def _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy, t, st):
+    """Fill ``st`` = (signature, albedo, u_0, irr_0, u_1, irr_1, ...) of the ray at time t.
+
+    The signature is -1 for no surface, else primitive index * 16 + lit bits,
+    so equal signatures mean the same primitive lit by the same projectors.
+    """
+    s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, dx, dy, 1.0, t, tex, np.inf)
+    n_proj = projs.shape[0]
+    if pi < 0:
+        st[0] = -1.0
+        st[1] = 0.0
+        for q in range(n_proj):
+            st[2 + 2 * q] = 0.0
+            st[3 + 2 * q] = 0.0
+        return
+    X = s * dx
+    Y = s * dy
+    Z = s
+    if nx * X + ny * Y + nz * Z > 0:
+        nx, ny, nz = -nx, -ny, -nz
+    bits = 0
+    for q in range(n_proj):
+        u, cosi, dist2 = _lit_by(
+            prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
+        )
+        if cosi > 0.0:
+            bits |= 1 << q
+            st[2 + 2 * q] = u
+            st[3 + 2 * q] = alb * proj_power[q] * cosi / dist2
+        else:
+            st[2 + 2 * q] = 0.0
+            st[3 + 2 * q] = 0.0
+    st[0] = pi * 16.0 + bits
+    st[1] = alb
+
+
+@nb.njit(cache=True, parallel=True)
+def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, times, r0, states):
+    """States (see :func:`_point_state`) of the pixel-centre rays of rows ``r0 ..`` at ``times``.
+
+    ``states``: (rows, w, len(times), 2 + 2 n_proj), filled for image rows
+    ``r0 .. r0 + rows`` (clipped to the image; rows outside are left alone).
+    """
+    h, w = rays.shape[:2]
+    rows = states.shape[0]
+    for ii in nb.prange(rows):
+        i = r0 + ii
+        if i < 0 or i >= h:
+            continue
+        nk = times.shape[0]
+        for j in range(w):
+            dx = rays[i, j, 0]
+            dy = rays[i, j, 1]
+            st = states[ii, j]
+            _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
+                         times[0], st[0])  # fmt: skip
+            _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
+                         times[nk - 1], st[nk - 1])  # fmt: skip
+            same = True
+            for f in range(st.shape[1]):
+                if st[0, f] != st[nk - 1, f]:
+                    same = False
+                    break
+            for kk in range(1, nk - 1):
+                if same:
+                    # nothing seen by this ray changed between start and end: a
+                    # static surface (nothing in these scenes crosses a pixel
+                    # entirely within one exposure)
+                    st[kk, :] = st[0, :]
+                else:
+                    _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx,
+                                 dy, times[kk], st[kk])  # fmt: skip
+
+
+@nb.njit(cache=True)
+def _segment_exact(
+    states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
+    crosstalk, ambient, n_proj, w3, wbuf, acc,
+):  # fmt: skip
+    """Add ``weight`` x the exact mean light of pixel (ii, j) between knots ka and kb to ``acc``."""
+    n_pat = pat_proj.shape[0]
+    sa = states[ii, j, ka]
+    sb = states[ii, j, kb]
+    if sa[0] < 0:
+        return  # nothing there
+    alb = sa[1]
+    acc[0] += weight * alb * ambient[0]
+    acc[1] += weight * alb * ambient[1]
+    acc[2] += weight * alb * ambient[2]
+    for q in range(n_proj):
+        cu = 2 + 2 * q
+        if sa[cu + 1] <= 0.0:
+            continue  # not lit by this projector (the same at both knots)
+        # u across the pixel from the neighbours (same smooth surface)
+        bx = 0.25 * (
+            states[ii, j + 1, ka, cu] - states[ii, j - 1, ka, cu]
+            + states[ii, j + 1, kb, cu] - states[ii, j - 1, kb, cu]
+        )  # fmt: skip
+        by = 0.25 * (
+            states[ii + 1, j, ka, cu] - states[ii - 1, j, ka, cu]
+            + states[ii + 1, j, kb, cu] - states[ii - 1, j, kb, cu]
+        )  # fmt: skip
+        w3[0] = sb[cu] - sa[cu]
+        w3[1] = bx
+        w3[2] = by
+        u0 = 0.5 * (sa[cu] + sb[cu])
+        irr = weight * 0.5 * (sa[cu + 1] + sb[cu + 1])
+        for m in range(n_pat):
+            if pat_proj[m] != q:
+                continue
+            light = irr * _line_light_box(pat_foot[m, : pat_nfoot[m]], u0, w3, defocus[q], wbuf)
+            c = pat_channel[m]
+            acc[0] += crosstalk[0, c] * light
+            acc[1] += crosstalk[1, c] * light
+            acc[2] += crosstalk[2, c] * light
+
+
+@nb.njit(cache=True, parallel=True)
+def render_exposure_fast(
+    rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
+    t0, exposure, samples, offsets, states, r0, row_lo, row_hi, out, mc_count,
+):  # fmt: skip
+    """Fast form of :func:`render_exposure` for image rows ``row_lo .. row_hi``.
+
+    ``states`` come from :func:`knot_states` at the exposure's start, middle
+    and end for rows ``r0 .. r0 + len(states)``, which must include one row
+    above and below the band.  Smooth segments are integrated exactly (see the
+    section comment); the others use :func:`_pixel_mc` with their share of
+    ``samples``.  ``mc_count[i]`` receives the number of pixels of row i that
+    needed any Monte Carlo samples.
+    """
+    h, w = rays.shape[:2]
+    n_proj = projs.shape[0]
+    last = KNOTS - 1
+    seg_samples = max(samples // last, 4)
+    for i in nb.prange(row_lo, row_hi):
+        wbuf = np.empty(3)
+        w3 = np.empty(3)
+        acc = np.empty(3)
+        ii = i - r0
+        n_mc = 0
+        for j in range(w):
+            if not (0 < i < h - 1 and 0 < j < w - 1):
+                a0, a1, a2 = _pixel_mc(
+                    i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
+                    proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
+                    crosstalk, ambient, t0, exposure, 0, samples, offsets,
+                )  # fmt: skip
+                out[i, j, 0] = a0
+                out[i, j, 1] = a1
+                out[i, j, 2] = a2
+                n_mc += 1
+                continue
+            st = states[ii, j]
+            # smooth at a knot: the 3x3 neighbourhood sees one primitive, lit alike
+            smooth_k = 0
+            for kk in range(KNOTS):
+                ok = True
+                sig = st[kk, 0]
+                alb = st[kk, 1]
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        if (
+                            states[ii + di, j + dj, kk, 0] != sig
+                            or abs(states[ii + di, j + dj, kk, 1] - alb) > 1e-9
+                        ):
+                            ok = False
+                if ok:
+                    smooth_k |= 1 << kk
+            static = True
+            for kk in range(1, KNOTS):
+                for f in range(st.shape[1]):
+                    if st[kk, f] != st[0, f]:
+                        static = False
+            acc[:] = 0.0
+            if static and smooth_k == (1 << KNOTS) - 1:
+                # nothing changes during the exposure: one segment
+                _segment_exact(
+                    states, ii, j, 0, last, 1.0, pat_proj, pat_channel, pat_foot, pat_nfoot,
+                    defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
+                )  # fmt: skip
+            else:
+                mc_here = False
+                for seg in range(last):
+                    if (smooth_k >> seg) & 3 == 3:
+                        _segment_exact(
+                            states, ii, j, seg, seg + 1, 1.0 / last, pat_proj, pat_channel,
+                            pat_foot, pat_nfoot, defocus, crosstalk, ambient, n_proj, w3,
+                            wbuf, acc,
+                        )  # fmt: skip
+                    else:
+                        # an edge, shadow edge or texture inside this segment
+                        a0, a1, a2 = _pixel_mc(
+                            i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre,
+                            proj_size, proj_power, pat_proj, pat_channel, pat_foot,
+                            pat_nfoot, defocus, crosstalk, ambient,
+                            t0 + exposure * seg / last, exposure / last,
+                            (seg * seg_samples) % max(samples - seg_samples + 1, 1),
+                            seg_samples, offsets,
+                        )  # fmt: skip
+                        acc[0] += a0 / last
+                        acc[1] += a1 / last
+                        acc[2] += a2 / last
+                        mc_here = True
+                if mc_here:
+                    n_mc += 1
+            out[i, j, 0] = acc[0]
+            out[i, j, 1] = acc[1]
+            out[i, j, 2] = acc[2]
+        mc_count[i] = n_mc
 
 
 @nb.njit(cache=True, parallel=True)
@@ -356,466 +698,6 @@ def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
     ox = ((0.5 + k / g) % 1.0) - 0.5
     oy = ((0.5 + k / (g * g)) % 1.0) - 0.5
     return np.stack([t, ox, oy], axis=1)
-
-
-# ---------------------------------------------------------------------------
-# Fast form: exact time integration between adaptive knots
-# ---------------------------------------------------------------------------
-#
-# The slow form above samples time and pixel area together (Monte Carlo).  The
-# fast form traces the pixel centre at time knots only, refined by bisection
-# where the hit surface, its lighting or the projector column stop being
-# linear in time, and integrates the line light exactly between knots: with the
-# column u moving linearly from ua to ub, the mean light is
-# (G(ub) - G(ua)) / (ub - ua) where G is the antiderivative of the line light.
-# G is tabulated per pattern with its derivative, so a cubic Hermite lookup is
-# exact to ~1e-7.  The pixel area is a fixed sub-pixel grid whose points reuse
-# the centre's trace (same primitive, own hit point, albedo and column); a
-# pixel where a sub-point leaves the primitive at any knot is an edge pixel and
-# is integrated again with every sub-point traced on its own.
-
-@nb.njit(cache=True)
-def erf(x):
-    """Elementwise ``math.erf`` of an array."""
-    out = np.empty_like(x)
-    for i in range(x.size):
-        out.flat[i] = math.erf(x.flat[i])
-    return out
-
-
-TABLE_STEP = 1.0 / 16.0  # projector pixels between table nodes
-TOL_U = 0.05  # projector px: a segment is linear when the midpoint is this close
-TOL_REL = 0.01  # relative irradiance / albedo deviation accepted as linear
-MAX_KNOTS = 64  # stack size bound (depth <= MAX_KNOTS - 2)
-
-
-def line_light_tables(footprints: np.ndarray, sigma: float, width: int):
-    """Tables of the line light ``L``, its derivative and its antiderivative ``G``.
-
-    Parameters
-    ----------
-    footprints : numpy.ndarray
-        ``(n, 2)`` lit column intervals of one pattern (projector pixels).
-    sigma : float
-        Gaussian projector defocus in projector pixels.
-    width : int
-        Projector width in pixels.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(4, n_nodes)``: row 0 ``L``, row 1 ``dL/du``, row 2 ``G``; row 3 holds
-        ``[u_first_node, step, 0, ...]``.
-    """
-    pad = 8.0 * sigma + 4.0
-    u = np.arange(-pad, width + pad + TABLE_STEP, TABLE_STEP)
-    k = 1.0 / (math.sqrt(2.0) * sigma)
-    big_l = np.zeros_like(u)
-    dl = np.zeros_like(u)
-    g = np.zeros_like(u)
-    def anti(x):  # antiderivative of 0.5 * erf(k x)
-        return 0.5 * (x * erf(k * x) + np.exp(-(k * x) ** 2) / (k * math.sqrt(math.pi)))
-
-    gauss = k / math.sqrt(math.pi)
-    for a, b in footprints:
-        near = (u > a - pad - 1) & (u < b + pad + 1)
-        x1 = u[near] - a
-        x2 = u[near] - b
-        big_l[near] += 0.5 * (erf(k * x1) - erf(k * x2))
-        dl[near] += gauss * (np.exp(-(k * x1) ** 2) - np.exp(-(k * x2) ** 2))
-        # G = sum of (anti(u - a) - anti(u - b) + (b - a) / 2): 0 far left, b - a far right
-        g[near] += anti(x1) - anti(x2) + 0.5 * (b - a)
-        g[u >= b + pad + 1] += b - a
-    out = np.zeros((4, u.size))
-    out[0], out[1], out[2] = big_l, dl, g
-    out[3, 0], out[3, 1] = u[0], TABLE_STEP
-    return out
-
-
-@nb.njit(cache=True, inline="always")
-def _hermite(tab, row, drow, u):
-    """Cubic Hermite lookup of ``tab[row]`` with derivative ``tab[drow]``."""
-    u0 = tab[3, 0]
-    h = tab[3, 1]
-    n = tab.shape[1]
-    x = (u - u0) / h
-    if x <= 0.0:
-        return tab[row, 0]
-    if x >= n - 1:
-        return tab[row, n - 1]
-    i = int(x)
-    f = x - i
-    f2 = f * f
-    f3 = f2 * f
-    return (
-        (2 * f3 - 3 * f2 + 1) * tab[row, i]
-        + (f3 - 2 * f2 + f) * h * tab[drow, i]
-        + (-2 * f3 + 3 * f2) * tab[row, i + 1]
-        + (f3 - f2) * h * tab[drow, i + 1]
-    )
-
-
-@nb.njit(cache=True, inline="always")
-def _mean_light(tab, ua, ub):
-    """Mean line light while the column moves linearly from ``ua`` to ``ub``."""
-    du = ub - ua
-    if abs(du) < 0.02:
-        return _hermite(tab, 0, 1, 0.5 * (ua + ub))
-    return (_hermite(tab, 2, 0, ub) - _hermite(tab, 2, 0, ua)) / du
-
-
-@nb.njit(cache=True)
-def _knot(
-    st, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx, suby, t
-):  # fmt: skip
-    """Fill knot state ``st`` at time ``t``; returns False when a sub-point leaves the surface.
-
-    Layout: 0 prim index (-1 none), 1 lit bits, then per sub-point s
-    ``2 + s * (1 + 2 n_proj)``: albedo, then per projector (u, irradiance).
-    """
-    n_sub = subx.shape[0]
-    n_proj = projs.shape[0]
-    stride = 1 + 2 * n_proj
-    s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, rx, ry, 1.0, t, tex, np.inf)
-    st[0] = pi
-    st[1] = 0.0
-    if pi < 0:
-        for k in range(2, st.shape[0]):
-            st[k] = 0.0
-        return True
-    X = s * rx
-    Y = s * ry
-    Z = s
-    if nx * X + ny * Y + nz * Z > 0:
-        nx, ny, nz = -nx, -ny, -nz
-    bits = 0
-    for q in range(n_proj):
-        u, cosi, dist2 = _lit_by(
-            prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
-        )
-        irr[q] = 0.0
-        if cosi > 0.0:
-            bits |= 1 << q
-            irr[q] = proj_power[q] * cosi / dist2
-    st[1] = bits
-    ok = True
-    for k in range(n_sub):
-        base = 2 + k * stride
-        if n_sub == 1 and subx[0] == rx and suby[0] == ry:
-            sa, sx, sy, sz = alb, X, Y, Z
-        else:
-            sa_s, _nx, _ny, _nz, sa = _intersect(prims[pi], 0.0, 0.0, 0.0, subx[k], suby[k], 1.0,
-                                                 t, tex)
-            if not sa_s < np.inf:
-                ok = False
-                sa_s = s
-                sa = alb
-            sx, sy, sz = sa_s * subx[k], sa_s * suby[k], sa_s
-        st[base] = sa
-        for q in range(n_proj):
-            if bits & (1 << q):
-                u, _v = _project_u(projs[q], sx, sy, sz)
-                st[base + 1 + 2 * q] = u
-                st[base + 2 + 2 * q] = irr[q] * sa
-            else:
-                st[base + 1 + 2 * q] = 0.0
-                st[base + 2 + 2 * q] = 0.0
-    return ok
-
-
-@nb.njit(cache=True, inline="always")
-def _linear(a, m, b, tol):
-    return abs(m - 0.5 * (a + b)) <= tol
-
-
-@nb.njit(cache=True)
-def _accept(sa, sm, sb, n_sub, n_proj):
-    if sa[0] != sm[0] or sm[0] != sb[0] or sa[1] != sm[1] or sm[1] != sb[1]:
-        return False
-    if sa[0] < 0:
-        return True
-    stride = 1 + 2 * n_proj
-    for k in range(n_sub):
-        base = 2 + k * stride
-        if not _linear(sa[base], sm[base], sb[base], TOL_REL * max(sm[base], 1e-3)):
-            return False
-        for q in range(n_proj):
-            if not _linear(sa[base + 1 + 2 * q], sm[base + 1 + 2 * q], sb[base + 1 + 2 * q], TOL_U):
-                return False
-            ia = sa[base + 2 + 2 * q]
-            im = sm[base + 2 + 2 * q]
-            ib = sb[base + 2 + 2 * q]
-            if not _linear(ia, im, ib, TOL_REL * max(im, 1e-9)):
-                return False
-    return True
-
-
-@nb.njit(cache=True)
-def _unchanged(sa, sm, sb):
-    for k in range(sa.shape[0]):
-        if sa[k] != sm[k] or sm[k] != sb[k]:
-            return False
-    return True
-
-
-@nb.njit(cache=True)
-def _add_segment(acc, sa, sb, dt, n_sub, n_proj, tables, pat_proj, pat_channel, crosstalk,
-                 ambient):  # fmt: skip
-    """Add the light of one segment between knot states ``sa`` and ``sb`` (duration ``dt``)."""
-    stride = 1 + 2 * n_proj
-    w = dt / n_sub
-    same = sa[0] == sb[0] and sa[1] == sb[1]
-    for k in range(n_sub):
-        base = 2 + k * stride
-        amb = 0.5 * (sa[base] + sb[base]) * w
-        acc[0] += ambient[0] * amb
-        acc[1] += ambient[1] * amb
-        acc[2] += ambient[2] * amb
-        for m in range(pat_proj.shape[0]):
-            q = pat_proj[m]
-            ua = sa[base + 1 + 2 * q]
-            ub = sb[base + 1 + 2 * q]
-            ia = sa[base + 2 + 2 * q]
-            ib = sb[base + 2 + 2 * q]
-            if same:
-                if ia == 0.0 and ib == 0.0:
-                    continue
-                light = 0.5 * (ia + ib) * _mean_light(tables[m], ua, ub)
-            else:
-                # a surface or shadow edge inside a segment at the finest level:
-                # trapezoid of the instantaneous values
-                light = 0.0
-                if ia > 0.0:
-                    light += 0.5 * ia * _hermite(tables[m], 0, 1, ua)
-                if ib > 0.0:
-                    light += 0.5 * ib * _hermite(tables[m], 0, 1, ub)
-            c = pat_channel[m]
-            acc[0] += crosstalk[0, c] * light * w
-            acc[1] += crosstalk[1, c] * light * w
-            acc[2] += crosstalk[2, c] * light * w
-
-
-@nb.njit(cache=True)
-def _classify(prims, tex, projs, proj_centre, proj_size, rx, ry, t):
-    """Primitive index and lit bits of the tracer ray at ``t`` (no shading)."""
-    s, pi, nx, ny, nz, alb = _trace(prims, 0.0, 0.0, 0.0, rx, ry, 1.0, t, tex, np.inf)
-    if pi < 0:
-        return -1, 0
-    X = s * rx
-    Y = s * ry
-    Z = s
-    if nx * X + ny * Y + nz * Z > 0:
-        nx, ny, nz = -nx, -ny, -nz
-    bits = 0
-    for q in range(projs.shape[0]):
-        u, cosi, dist2 = _lit_by(
-            prims, tex, projs[q], proj_centre[q], proj_size[q], X, Y, Z, nx, ny, nz, t
-        )
-        if cosi > 0.0:
-            bits |= 1 << q
-    return pi, bits
-
-
-@nb.njit(cache=True)
-def _integrate(
-    buf, acc, rx, ry, subx, suby, prims, tex, projs, proj_centre, proj_size, proj_power, tables,
-    pat_proj, pat_channel, crosstalk, ambient, t0, exposure, dmin, dmax, weight,
-):  # fmt: skip
-    """Adaptive exact time integration for one tracer ray; False if a sub-point left."""
-    n_sub = subx.shape[0]
-    n_proj = projs.shape[0]
-    nf = 2 + n_sub * (1 + 2 * n_proj)
-    # scratch rows of ``buf`` (allocated once per image row by the caller)
-    stack = buf[:MAX_KNOTS, :nf]
-    left = buf[MAX_KNOTS, :nf]
-    mid = buf[MAX_KNOTS + 1, :nf]
-    irr = buf[MAX_KNOTS + 2]
-    st_t = buf[MAX_KNOTS + 3, :MAX_KNOTS]
-    st_d = buf[MAX_KNOTS + 4, :MAX_KNOTS]
-    part = buf[MAX_KNOTS + 5, :3]
-    mid2 = buf[MAX_KNOTS + 6, :nf]
-    part[:] = 0.0
-    t_edge = exposure / 2.0**dmax  # resolution of a surface edge crossing in time
-    d_lin = min(dmax, dmin + 2)  # smooth non-linearity is refined at most this deep
-    ok = _knot(left, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
-               suby, t0)  # fmt: skip
-    tl = t0
-    top = 0
-    ok &= _knot(stack[0], irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
-                suby, t0 + exposure)  # fmt: skip
-    st_t[0] = t0 + exposure
-    st_d[0] = 0
-    while top >= 0:
-        tr = st_t[top]
-        d = int(st_d[top])
-        right = stack[top]
-        if d >= dmin and (left[0] != right[0] or left[1] != right[1]):
-            # a surface or shadow edge passes: find the crossing by bisection on
-            # the classification alone, then shade both sides of it once
-            ca = (int(left[0]), int(left[1]))
-            ta = tl
-            tb = tr
-            while tb - ta > t_edge:
-                tm = 0.5 * (ta + tb)
-                if _classify(prims, tex, projs, proj_centre, proj_size, rx, ry, tm) == ca:
-                    ta = tm
-                else:
-                    tb = tm
-            ok &= _knot(mid, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry,
-                        subx, suby, ta)  # fmt: skip
-            ok &= _knot(mid2, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry,
-                        subx, suby, tb)  # fmt: skip
-            _add_segment(part, left, mid, ta - tl, n_sub, n_proj, tables, pat_proj, pat_channel,
-                         crosstalk, ambient)  # fmt: skip
-            _add_segment(part, mid, mid2, tb - ta, n_sub, n_proj, tables, pat_proj, pat_channel,
-                         crosstalk, ambient)  # fmt: skip
-            _add_segment(part, mid2, right, tr - tb, n_sub, n_proj, tables, pat_proj,
-                         pat_channel, crosstalk, ambient)  # fmt: skip
-            left[:] = right
-            tl = tr
-            top -= 1
-            continue
-        tm = 0.5 * (tl + tr)
-        ok &= _knot(mid, irr, prims, tex, projs, proj_centre, proj_size, proj_power, rx, ry, subx,
-                    suby, tm)  # fmt: skip
-        # a static surface seen unchanged at both ends and the middle needs no
-        # minimum knot spacing (the spacing guards against moving objects)
-        still = (
-            d < dmin
-            and left[0] == mid[0] == right[0]
-            and (left[0] < 0 or prims[int(left[0]), 1] == 1.0)
-            and _unchanged(left, mid, right)
-        )
-        split = (d < dmin and not still) or (
-            d < d_lin and not _accept(left, mid, right, n_sub, n_proj)
-        )
-        if split and top + 1 < MAX_KNOTS:
-            st_d[top] = d + 1
-            top += 1
-            stack[top, :] = mid
-            st_t[top] = tm
-            st_d[top] = d + 1
-            continue
-        _add_segment(part, left, mid, tm - tl, n_sub, n_proj, tables, pat_proj, pat_channel,
-                     crosstalk, ambient)  # fmt: skip
-        _add_segment(part, mid, right, tr - tm, n_sub, n_proj, tables, pat_proj,
-                     pat_channel, crosstalk, ambient)  # fmt: skip
-        left[:] = right
-        tl = tr
-        top -= 1
-    acc[0] += part[0] * weight
-    acc[1] += part[1] * weight
-    acc[2] += part[2] * weight
-    return ok
-
-
-@nb.njit(cache=True, parallel=True)
-def render_exposure_fast(
-    rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power, tables,
-    pat_proj, pat_channel, crosstalk, ambient, t0, exposure, sub, dmin, dmax, out,
-):  # fmt: skip
-    """Fast form of :func:`render_exposure`: exact in time, ``sub x sub`` grid over the pixel.
-
-    ``tables``: ``(n_pat, 4, n_nodes)`` from :func:`line_light_tables`.  ``dmin``/``dmax``
-    bound the bisection depth of the exposure (``2**d`` segments).  Returns the
-    number of edge pixels that were integrated with every sub-point traced.
-    """
-    h, w = rays.shape[:2]
-    n_sub = sub * sub
-    edges = np.zeros(h, dtype=np.int64)
-    for i in nb.prange(h):
-        acc = np.zeros(3)
-        buf = np.empty((MAX_KNOTS + 7, max(2 + n_sub * (1 + 2 * projs.shape[0]), MAX_KNOTS)))
-        subx = np.empty(n_sub)
-        suby = np.empty(n_sub)
-        one_x = np.empty(1)
-        one_y = np.empty(1)
-        for j in range(w):
-            rx = rays[i, j, 0]
-            ry = rays[i, j, 1]
-            for a in range(sub):
-                for b in range(sub):
-                    ox = (a + 0.5) / sub - 0.5
-                    oy = (b + 0.5) / sub - 0.5
-                    subx[a * sub + b] = rx + ox * ray_dx[i, j, 0] + oy * ray_dy[i, j, 0]
-                    suby[a * sub + b] = ry + ox * ray_dx[i, j, 1] + oy * ray_dy[i, j, 1]
-            acc[:] = 0.0
-            ok = _integrate(
-                buf, acc, rx, ry, subx, suby, prims, tex, projs, proj_centre, proj_size, proj_power,
-                tables, pat_proj, pat_channel, crosstalk, ambient, t0, exposure, dmin, dmax, 1.0,
-            )  # fmt: skip
-            if not ok:
-                edges[i] += 1
-                acc[:] = 0.0
-                for k in range(n_sub):
-                    one_x[0] = subx[k]
-                    one_y[0] = suby[k]
-                    _integrate(
-                        buf, acc, subx[k], suby[k], one_x, one_y, prims, tex, projs, proj_centre,
-                        proj_size, proj_power, tables, pat_proj, pat_channel, crosstalk,
-                        ambient, t0, exposure, dmin, dmax, 1.0 / n_sub,
-                    )  # fmt: skip
-            out[i, j, 0] = acc[0] / exposure
-            out[i, j, 1] = acc[1] / exposure
-            out[i, j, 2] = acc[2] / exposure
-    return edges.sum()
-
-
-MIN_STEP_PX = 16.0  # at least one knot per this much image motion (thin objects are not skipped)
-EDGE_STEP_PX = 0.25  # bisection stops when a segment moves the image by less than this
-
-
-def image_motion_px(prims: np.ndarray, t0: float, exposure: float, fx: float, fy: float) -> float:
-    """Longest image path (pixels, pinhole) of any moving primitive's extreme points.
-
-    Parameters
-    ----------
-    prims : numpy.ndarray
-        Primitive rows valid over the exposure.
-    t0, exposure : float
-        Exposure start and length (seconds).
-    fx, fy : float
-        Camera focal lengths in pixels.
-
-    Returns
-    -------
-    float
-        Conservative image motion over the exposure; 0 for a static scene.
-    """
-    times = t0 + exposure * np.linspace(0.0, 1.0, 17)
-    tt = times[:, None]
-    best = 0.0
-    for p in prims:
-        kind = int(p[0])
-        if kind == PRIM_RECT:
-            c = p[4:7] + p[7:10] * tt
-            pts = [c + sa * p[16] * p[10:13] + sb * p[17] * p[13:16]
-                   for sa in (-1, 1) for sb in (-1, 1)]  # fmt: skip
-        elif kind == PRIM_SPHERE:
-            c = p[4:7] + p[7:10] * tt + 0.5 * p[10:13] * tt * tt
-            pts = [c] + [c + sgn * p[13] * np.eye(3)[k] for k in range(3) for sgn in (-1, 1)]
-        elif kind == PRIM_BLADE:
-            ax, a1 = p[7:10], p[10:13]
-            b = np.cross(ax, a1)
-            th = (p[14] + p[13] * times)[:, None]
-            er = np.cos(th) * a1 + np.sin(th) * b
-            pts = [p[4:7] + r * er for r in (p[15], p[16])]
-        else:
-            continue
-        for q in pts:
-            z = np.maximum(q[:, 2], 1e-3)
-            uv = np.stack([fx * q[:, 0] / z, fy * q[:, 1] / z], axis=1)
-            best = max(best, float(np.sum(np.linalg.norm(np.diff(uv, axis=0), axis=1))))
-    return best
-
-
-def knot_depths(motion_px: float) -> tuple[int, int]:
-    """Minimum and maximum bisection depth of the exposure for an image motion."""
-    dmax = int(np.clip(math.ceil(math.log2(max(motion_px / EDGE_STEP_PX, 1.0))), 1, MAX_KNOTS - 2))
-    # an accepted segment is shaded at its ends and midpoint, so depth d gives
-    # knots every exposure / 2**(d + 1)
-    dmin = int(np.clip(math.ceil(math.log2(max(motion_px / MIN_STEP_PX, 1.0))) - 1, 0, dmax))
-    return dmin, dmax
 
 
 @nb.njit(cache=True)

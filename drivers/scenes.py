@@ -130,6 +130,13 @@ def _toward(t):
     return _throws(t, [(2, (0.05, -0.06, 0.9), (-0.1, -0.45, -1.1), 0.09)])
 
 
+def _ball_wall(t):
+    # the thrown ball in front of a static wall: the wall's lines do not move,
+    # so their bands are rejected, while the ball's blurred bands give depth
+    wall = _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.1)), n=(7, (0, 0, -1)))
+    return np.concatenate([np.stack([wall]), _thrown(t)])
+
+
 def _two_balls(t):
     return _throws(t, [
         (2, (-0.12, -0.04, 0.7), (0.1, -0.4, 0.55), 0.085),
@@ -179,6 +186,8 @@ SCENES: dict[str, Scene] = {
         Scene("fan-1ms", "a spinning fan in front of a static wall (paper: 1 ms)", 0.001, False,
               0.1),
         Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
+        Scene("ball-wall", "a thrown ball in front of a static wall at 1.1 m", 0.02, False,
+              THROW_PERIOD),
         Scene("two-balls", "two balls thrown in opposite depth directions", 0.02, False,
               THROW_PERIOD),
     )
@@ -195,6 +204,7 @@ _BUILDERS = {
     "newspaper-board": lambda t: _board(t, texture=1, speed=BOARD_SPEED * SLOW),
     "fan-1ms": _fan,
     "fan": _fan,
+    "ball-wall": _ball_wall,
     "two-balls": _two_balls,
 }
 

@@ -19,9 +19,8 @@ from lightflow.app.rig import CHANNEL_INDEX, Pattern, Rig
 
 from .base import Camera, Frame
 from .render import (
-    image_motion_px,
-    knot_depths,
-    line_light_tables,
+    KNOTS,
+    knot_states,
     render_exposure,
     render_exposure_fast,
     render_truth,
@@ -162,12 +161,6 @@ class SensorModel:
         3x3 camera-channel response to each projector colour (columns: R, G, B light).
     samples : int
         Time/area samples per pixel of the sampled (slow, Monte Carlo) form.
-    method : str
-        ``"exact"`` (default): exact integration over the exposure between
-        adaptive time knots, ``subpixel`` x ``subpixel`` points over the pixel;
-        ``"sampled"``: the slow Monte Carlo form (reference for tests).
-    subpixel : int
-        Points per axis over the pixel area in the exact form.
     bit_depth : int
         8 or 16 bits per channel.
     """
@@ -182,8 +175,6 @@ class SensorModel:
     crosstalk: tuple = ((1.0, 0.03, 0.04), (0.04, 1.0, 0.05), (0.03, 0.05, 1.0))
     samples: int = 32
     bit_depth: int = 8
-    method: str = "exact"
-    subpixel: int = 2
 
 
 @dataclass
@@ -228,7 +219,7 @@ class SceneRenderer:
         self.sensor = sensor
         cam = rig.camera
         rays = camera_rays_cv(cam.K, cam.dist, cam.width, cam.height)
-        self.rays = np.ascontiguousarray(rays)
+        self.rays = np.array(rays)  # a writable copy: numba compiles for writable arrays
         # per-pixel change of the ray for sub-pixel samples
         self.ray_dx = np.ascontiguousarray(np.gradient(rays, axis=1))
         self.ray_dy = np.ascontiguousarray(np.gradient(rays, axis=0))
@@ -253,49 +244,63 @@ class SceneRenderer:
             [WHITE_DN * float(np.sum((c - target) ** 2)) for c in self.proj_centre]
         )
         self.offsets = stratified_offsets(sensor.samples)
-        tabs = [
-            line_light_tables(f, sensor.projector_defocus_px, proj.width)
-            for f, (proj, _) in zip(foots, pats, strict=True)
-        ]
-        n_nodes = max(t.shape[1] for t in tabs)
-        self.tables = np.zeros((len(tabs), 4, n_nodes))
-        for m, t in enumerate(tabs):
-            self.tables[m, :, : t.shape[1]] = t
-            self.tables[m, :3, t.shape[1] :] = t[:3, -1:]
-        self.edge_pixels = 0
+        #: fraction of pixels the last :meth:`radiance` sampled by Monte Carlo
+        self.last_mc_fraction = 0.0
 
-    def radiance(self, t0: float, exposure_s: float) -> np.ndarray:
-        """Noise-free mean image (float DN) of the exposure starting at ``t0``."""
+    #: image rows per band of the fast form (bounds the memory of the knot states)
+    BAND_ROWS = 96
+
+    def radiance(self, t0: float, exposure_s: float, exact: bool = False) -> np.ndarray:
+        """Noise-free mean image (float DN) of the exposure starting at ``t0``.
+
+        Parameters
+        ----------
+        t0, exposure_s : float
+            Exposure start and duration in seconds.
+        exact : bool
+            Use the slow reference form (``samples`` Monte Carlo samples of
+            time and pixel area at every pixel) instead of the fast form, which
+            integrates smooth pixels exactly and samples only the others.
+        """
         cam = self.rig.camera
         out = np.zeros((cam.height, cam.width, 3))
         prims = self.scene.primitives(t0 + exposure_s / 2)
         # brightness scales with exposure relative to the scene's nominal exposure
         gain = exposure_s / self.scene.exposure_s
         s = self.sensor
-        if s.method == "exact":
-            cam = self.rig.camera
-            motion = image_motion_px(prims, t0, exposure_s, cam.K[0, 0], cam.K[1, 1])
-            dmin, dmax = knot_depths(motion)
-            self.edge_pixels = render_exposure_fast(
+        power = self.proj_power * gain
+        defocus = np.full(len(self.rig.projectors), s.projector_defocus_px)
+        crosstalk = np.array(s.crosstalk)
+        ambient = np.full(3, s.ambient_dn * gain)
+        if exact:
+            render_exposure(
                 self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-                self.proj_centre, self.proj_size, self.proj_power * gain, self.tables,
-                self.pat_proj, self.pat_channel, np.array(s.crosstalk),
-                np.full(3, s.ambient_dn * gain), t0, exposure_s, s.subpixel, dmin, dmax, out,
+                self.proj_centre, self.proj_size, power, self.pat_proj,
+                self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
+                ambient, t0, exposure_s, s.samples, self.offsets, out,
             )  # fmt: skip
+            self.last_mc_fraction = 1.0
         else:
-            self._render_sampled(prims, gain, t0, exposure_s, out)
+            times = t0 + exposure_s * np.linspace(0.0, 1.0, KNOTS)
+            n_fields = 2 + 2 * len(self.rig.projectors)
+            mc = np.zeros(cam.height, dtype=np.int64)
+            for lo in range(0, cam.height, self.BAND_ROWS):
+                hi = min(lo + self.BAND_ROWS, cam.height)
+                # one row of halo each side: smoothness looks at the 3x3 neighbours
+                states = np.zeros((hi - lo + 2, cam.width, KNOTS, n_fields))
+                knot_states(
+                    self.rays, prims, self.texture, self.projs, self.proj_centre,
+                    self.proj_size, power, times, lo - 1, states,
+                )  # fmt: skip
+                render_exposure_fast(
+                    self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+                    self.proj_centre, self.proj_size, power, self.pat_proj,
+                    self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
+                    ambient, t0, exposure_s, s.samples, self.offsets, states, lo - 1,
+                    lo, hi, out, mc,
+                )  # fmt: skip
+            self.last_mc_fraction = float(mc.sum()) / (cam.width * cam.height)
         return lens_blur(out, s.lens_psf, s.lens_blur_px)
-
-    def _render_sampled(self, prims, gain, t0, exposure_s, out) -> None:
-        s = self.sensor
-        render_exposure(
-            self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-            self.proj_centre, self.proj_size, self.proj_power * gain, self.pat_proj,
-            self.pat_channel, self.pat_foot, self.pat_nfoot,
-            np.full(len(self.rig.projectors), s.projector_defocus_px),
-            np.array(s.crosstalk), np.full(3, s.ambient_dn * gain), t0, exposure_s,
-            s.samples, self.offsets, out,
-        )  # fmt: skip
 
     def expose(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Shot and read noise, quantisation: the sensor's RGB image."""

@@ -34,7 +34,7 @@ def test_recording_reads_back_with_ground_truth(board_rec):
     assert rec.frames[1].t == pytest.approx(1 / 30)
     image = load_frame(rec, 1)
     assert image.shape == (H, W, 3) and image.dtype == np.uint8
-    assert image.max() > 80  # lit lines, not a black frame
+    assert image.max() > 80  # lit lines (about 95 DN at their peak), not a black frame
     for stem in ("000000", "000001"):
         truth = GroundTruth.load(board_rec / "ground_truth" / f"{stem}.npz")
         assert truth.depth.shape == truth.object_id.shape == truth.lit.shape == (H, W)
@@ -114,3 +114,24 @@ def test_resolve_rig_by_name_and_path(tmp_path):
     assert len(resolve_rig("single-projector").projectors) == 1
     with pytest.raises(ConfigError, match="file not found"):
         resolve_rig(tmp_path / "missing.json")
+
+
+def test_ball_wall_scene_has_a_static_wall_behind_a_moving_ball():
+    from lightflow.drivers.scenes import get_scene
+    from lightflow.drivers.synthetic import SceneRenderer
+
+    rig = resolve_rig("two-projector").scaled(0.1)
+    truth = SceneRenderer(rig, get_scene("ball-wall")).truth(0.05)
+    wall = truth.object_id == 1
+    ball = truth.object_id == 2
+    assert wall.mean() > 0.5 and 0.01 < ball.mean() < 0.3
+    assert np.allclose(truth.depth[wall], 1.1, atol=1e-4)  # the wall is the plane z = 1.1 m
+    assert 0.5 < np.nanmax(truth.depth[ball]) < 1.0
+
+
+def test_demo_no_save_without_a_viewer_is_one_line(monkeypatch, capsys):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert cli_main(["demo", "--no-save", "--frames", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lightflow: error: --no-save") and err.count("\n") == 1
