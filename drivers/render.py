@@ -698,3 +698,15 @@ def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
     ox = ((0.5 + k / g) % 1.0) - 0.5
     oy = ((0.5 + k / (g * g)) % 1.0) - 0.5
     return np.stack([t, ox, oy], axis=1)
+
+
+@nb.njit(cache=True)
+def project_to_projector(pp, points):
+    """Projector pixels ``(n, 2)`` of camera-frame ``points`` ``(n, 3)`` with the kernel's model.
+
+    ``pp`` is one row of :func:`lightflow.drivers.synthetic.pack_projectors`.
+    """
+    out = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        out[i, 0], out[i, 1] = _project_u(pp, points[i, 0], points[i, 1], points[i, 2])
+    return out

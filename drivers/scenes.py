@@ -71,20 +71,24 @@ def _rect(obj, albedo, texture, centre, velocity, e1, e2, half_a, half_b):
 BOARD_SPEED = 0.6  # m/s along the optical axis
 
 
-def _board(t, texture=0):
+#: the paper's boards are exposed 300 ms: they move this much slower than at 20 ms
+SLOW = 0.02 / 0.3
+
+
+def _board(t, texture=0, speed=BOARD_SPEED):
     # the row describes motion as centre(t0) + v (t - t0); give the state at t and t0 = t
-    z, vz = _triangle(t, 0.6, 0.9, BOARD_SPEED)
+    z, vz = _triangle(t, 0.6, 0.9, speed)
     centre = (0.0, 0.0, z - vz * t)
     return np.stack([_rect(2, 0.85, texture, centre, (0, 0, vz), (1, 0, 0), (0, 1, 0), 0.34, 0.26)])
 
 
-def _tilted(t):
-    ang_y, ang_x = math.radians(30), math.radians(12)
+def _tilted(t, ang_y_deg=30.0, ang_x_deg=12.0, rate=1.0):
+    ang_y, ang_x = math.radians(ang_y_deg), math.radians(ang_x_deg)
     e1 = np.array([math.cos(ang_y), 0, -math.sin(ang_y)])
     e2 = np.array([0, math.cos(ang_x), math.sin(ang_x)])
     e2 -= e1 * (e1 @ e2)
     e2 /= np.linalg.norm(e2)
-    s, vs = _triangle(t, -1.0, 1.0, 1.0 / 0.5)
+    s, vs = _triangle(t, -1.0, 1.0, rate / 0.5)
     direction = np.array([0.12, 0.0, 0.15])  # diagonal: sideways and in depth
     centre = np.array([0.0, 0.0, 0.75]) + s * direction
     vel = vs * direction
@@ -119,6 +123,11 @@ def _throws(t, balls):
 def _thrown(t):
     # thrown away from the camera, 0.68 -> 0.85 m, drifting right and arcing
     return _throws(t, [(2, (-0.06, -0.05, 0.68), (0.15, -0.4, 0.6), 0.1)])
+
+
+def _toward(t):
+    # thrown toward the camera, 0.9 -> 0.57 m, arcing
+    return _throws(t, [(2, (0.05, -0.06, 0.9), (-0.1, -0.45, -1.1), 0.09)])
 
 
 def _ball_wall(t):
@@ -166,6 +175,16 @@ SCENES: dict[str, Scene] = {
         Scene("textured-board", "printed (newspaper) board moving along the axis", 0.02, True, 1.0),
         Scene("tilted-board", "board tilted 30 deg moving diagonally", 0.02, True, 1.0),
         Scene("ball", "a thrown ball, 0.68-0.85 m", 0.02, False, THROW_PERIOD),
+        Scene("ball-away", "a ball thrown away from the camera, 0.68-0.85 m (paper: 5 ms)",
+              0.005, False, THROW_PERIOD),
+        Scene("ball-toward", "a ball thrown toward the camera, 0.9-0.57 m (paper: 5 ms)",
+              0.005, False, THROW_PERIOD),
+        Scene("diagonal-board", "board tilted 20/10 deg moving diagonally (sideways and in depth)",
+              0.3, True, 1.0 / SLOW),
+        Scene("newspaper-board", "printed (newspaper) board along the axis (paper: 300 ms)",
+              0.3, True, 1.0 / SLOW),
+        Scene("fan-1ms", "a spinning fan in front of a static wall (paper: 1 ms)", 0.001, False,
+              0.1),
         Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
         Scene("ball-wall", "a thrown ball in front of a static wall at 1.1 m", 0.02, False,
               THROW_PERIOD),
@@ -179,6 +198,11 @@ _BUILDERS = {
     "textured-board": lambda t: _board(t, texture=1),
     "tilted-board": _tilted,
     "ball": _thrown,
+    "ball-away": _thrown,
+    "ball-toward": _toward,
+    "diagonal-board": lambda t: _tilted(t, 20.0, 10.0, rate=SLOW),
+    "newspaper-board": lambda t: _board(t, texture=1, speed=BOARD_SPEED * SLOW),
+    "fan-1ms": _fan,
     "fan": _fan,
     "ball-wall": _ball_wall,
     "two-balls": _two_balls,

@@ -14,11 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lightflow.app.depth_model import _projector_params
-from lightflow.app.errors import DriverError
-from lightflow.app.geometry import camera_rays
-from lightflow.app.patterns import line_footprints
-from lightflow.app.rig import CHANNEL_INDEX, Rig
+from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.rig import CHANNEL_INDEX, Pattern, Rig
 
 from .base import Camera, Frame
 from .render import (
@@ -30,6 +27,107 @@ from .render import (
     stratified_offsets,
 )
 from .scenes import Scene, get_scene, newspaper_texture
+
+# The simulator is a reference for the reconstruction, so it shares none of its
+# geometry code: camera rays come from OpenCV's own undistortPoints, patterns
+# are rasterised here from the format's definition, and projector parameters
+# are packed here from the rig's numbers.  An error on either side then shows.
+
+
+_RAYS: dict[bytes, np.ndarray] = {}
+
+
+def camera_rays_cv(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Rays ``(h, w, 3)`` (z = 1) through the pixel centres, undistorted by OpenCV.
+
+    Kept per camera (read-only), since undistorting a full frame takes a while.
+    """
+    key = np.asarray(K, np.float64).tobytes() + np.asarray(dist, np.float64).tobytes()
+    key += np.array([width, height]).tobytes()
+    if key not in _RAYS:
+        if len(_RAYS) > 4:
+            _RAYS.clear()
+        _RAYS[key] = _undistorted_rays(K, dist, width, height)
+        _RAYS[key].flags.writeable = False
+    return _RAYS[key]
+
+
+def _undistorted_rays(K, dist, width, height):
+    x, y = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pix = np.stack([x.ravel(), y.ravel()], axis=1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    xy = cv2.undistortPointsIter(pix, K, np.asarray(dist, np.float64), None, None, crit)
+    xy = xy.reshape(height, width, 2)
+    return np.concatenate([xy, np.ones((height, width, 1))], axis=2)
+
+
+def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
+    """``(n, 2)`` column intervals lit by a pattern, from the format's definition.
+
+    Line k covers the projector columns x with ``|x - u_k| <= width_px / 2``; a
+    lit column x emits light over ``[x - 0.5, x + 0.5]``.
+    """
+    if pattern.kind == "uniform":
+        centres = pattern.offset_px + pattern.pitch_px * np.arange(
+            int(np.ceil((width - pattern.offset_px) / pattern.pitch_px)) + 1
+        )
+        centres = centres[(centres >= 0) & (centres < width)]  # "every k with 0 <= u_k < W"
+    elif pattern.kind == "exp2":
+        centres = width * (2.0 ** (np.arange(pattern.lines) / pattern.lines) - 1.0)
+    elif pattern.kind == "exp2-reversed":
+        centres = width * (2.0 - 2.0 ** (1.0 - np.arange(1, pattern.lines + 1) / pattern.lines))
+    else:
+        raise ConfigError(f"pattern kind {pattern.kind!r}: the simulator does not know it")
+    cols = np.arange(width, dtype=np.float64)
+    lit = np.zeros(width, dtype=bool)
+    for u in centres:
+        lit |= np.abs(cols - u) <= pattern.width_px / 2 + 1e-9
+    edges = np.diff(lit.astype(np.int8), prepend=0, append=0)
+    first = np.flatnonzero(edges == 1)
+    last = np.flatnonzero(edges == -1) - 1
+    return np.stack([first - 0.5, last + 0.5], axis=1).astype(np.float64)
+
+
+def pack_projectors(rig: Rig) -> np.ndarray:
+    """Per projector the renderer's 29 numbers: R (9), t (3), fx, skew, cx, fy, cy, dist (12)."""
+    out = np.zeros((len(rig.projectors), 29))
+    for i, p in enumerate(rig.projectors):
+        K = np.asarray(p.K, np.float64)
+        out[i, :9] = np.asarray(p.R, np.float64).ravel()
+        out[i, 9:12] = np.asarray(p.t, np.float64).ravel()
+        out[i, 12:17] = [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
+        d = np.asarray(p.dist, np.float64).ravel()[:12]
+        out[i, 17 : 17 + d.size] = d
+    return out
+
+
+def disk_kernel(radius: float, halo: float = 0.05) -> np.ndarray:
+    """A defocus PSF: a uniform disc of ``radius`` px (area-sampled) plus a faint wide halo."""
+    r = max(radius, 0.5)
+    n = int(np.ceil(4 * r)) + 1
+    size = 2 * n + 1
+    # area-sample the disc onto pixels (8 x 8 points per pixel)
+    f = (np.arange(size * 8) + 0.5) / 8.0 - (n + 0.5)
+    xx, yy = np.meshgrid(f, f)
+    fine = ((xx * xx + yy * yy) <= r * r).astype(np.float64)
+    k = fine.reshape(size, 8, size, 8).mean(axis=(1, 3))
+    k /= k.sum()
+    if halo > 0:
+        g = cv2.getGaussianKernel(size, 2.0 * r)
+        k = (1 - halo) * k + halo * (g @ g.T) / (g @ g.T).sum()
+    return k / k.sum()
+
+
+def lens_blur(image: np.ndarray, psf: str, size_px: float) -> np.ndarray:
+    """Blur the radiance with the camera lens: ``gauss`` (sigma) or ``disk`` (radius)."""
+    if size_px <= 0:
+        return image
+    if psf == "gauss":
+        return cv2.GaussianBlur(image, (0, 0), size_px)
+    if psf == "disk":
+        return cv2.filter2D(image, -1, disk_kernel(size_px), borderType=cv2.BORDER_REFLECT)
+    raise ConfigError(f"lens_psf: expected 'gauss' or 'disk', got {psf!r}")
+
 
 #: a static white surface facing the projector at this distance reaches WHITE_DN
 REFERENCE_DISTANCE_M = 0.75
@@ -47,7 +145,14 @@ class SensorModel:
     electrons_per_dn : float
     read_noise_dn : float
     lens_blur_px : float
-        Gaussian sigma of the camera lens blur in pixels.
+        Camera lens blur in pixels: the Gaussian's sigma, or the disc's radius.
+    lens_psf : str
+        ``"gauss"`` (default) or ``"disk"`` (a defocused lens: a uniform disc of
+        radius ``lens_blur_px`` plus a faint halo) -- a blur the reconstruction's
+        Gaussian profile model does not assume.
+    camera_gamma : float
+        Response curve of the camera: ``DN = full * (signal / full) ** (1 / gamma)``
+        after noise (1 = linear, the physical default).
     projector_defocus_px : float
         Gaussian sigma of the projector defocus in projector pixels.
     ambient_dn : float
@@ -55,7 +160,7 @@ class SensorModel:
     crosstalk : tuple
         3x3 camera-channel response to each projector colour (columns: R, G, B light).
     samples : int
-        Time/area samples per pixel.
+        Time/area samples per pixel of the sampled (slow, Monte Carlo) form.
     bit_depth : int
         8 or 16 bits per channel.
     """
@@ -63,6 +168,8 @@ class SensorModel:
     electrons_per_dn: float = 40.0
     read_noise_dn: float = 1.0
     lens_blur_px: float = 0.6
+    lens_psf: str = "gauss"
+    camera_gamma: float = 1.0
     projector_defocus_px: float = 0.6
     ambient_dn: float = 8.0
     crosstalk: tuple = ((1.0, 0.03, 0.04), (0.04, 1.0, 0.05), (0.03, 0.05, 1.0))
@@ -111,17 +218,17 @@ class SceneRenderer:
         self.scene = scene
         self.sensor = sensor
         cam = rig.camera
-        rays = camera_rays(cam)
-        self.rays = np.ascontiguousarray(rays)
+        rays = camera_rays_cv(cam.K, cam.dist, cam.width, cam.height)
+        self.rays = np.array(rays)  # a writable copy: numba compiles for writable arrays
         # per-pixel change of the ray for sub-pixel samples
         self.ray_dx = np.ascontiguousarray(np.gradient(rays, axis=1))
         self.ray_dy = np.ascontiguousarray(np.gradient(rays, axis=0))
         self.texture = newspaper_texture()
-        self.projs = _projector_params(rig)
+        self.projs = pack_projectors(rig)
         self.proj_centre = np.array([p.centre_in_camera for p in rig.projectors])
         self.proj_size = np.array([[p.width, p.height] for p in rig.projectors], dtype=np.float64)
         pats = rig.patterns
-        foots = [line_footprints(pat, proj.width) for proj, pat in pats]
+        foots = [pattern_footprints(pat, proj.width) for proj, pat in pats]
         n_max = max(len(f) for f in foots)
         self.pat_foot = np.zeros((len(pats), n_max, 2))
         for m, f in enumerate(foots):
@@ -193,15 +300,15 @@ class SceneRenderer:
                     lo, hi, out, mc,
                 )  # fmt: skip
             self.last_mc_fraction = float(mc.sum()) / (cam.width * cam.height)
-        if s.lens_blur_px > 0:
-            out = cv2.GaussianBlur(out, (0, 0), s.lens_blur_px)
-        return out
+        return lens_blur(out, s.lens_psf, s.lens_blur_px)
 
     def expose(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Shot and read noise, quantisation: the sensor's RGB image."""
         s = self.sensor
         e = np.maximum(radiance, 0) * s.electrons_per_dn
         noisy = rng.poisson(e) / s.electrons_per_dn + rng.normal(0, s.read_noise_dn, e.shape)
+        if s.camera_gamma != 1.0:
+            noisy = 255.0 * (np.maximum(noisy, 0.0) / 255.0) ** (1.0 / s.camera_gamma)
         if s.bit_depth == 16:
             return np.clip(np.rint(noisy * 257.0), 0, 65535).astype(np.uint16)
         return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)

@@ -39,7 +39,8 @@ bound (about 2 s a frame at 800x600 under that load).  Progress is printed
 at each stage."""
 
 EPILOG = """\
-scenes: ball-wall, board, textured-board, tilted-board, ball, fan, two-balls
+scenes: ball-wall, board, textured-board, tilted-board, ball, fan, two-balls, and the
+  paper's ball-away, ball-toward (5 ms), diagonal-board, newspaper-board (300 ms), fan-1ms
 examples:
   lightflow demo                                    # ball in front of a wall, 45 frames
   lightflow demo --scene fan --frames 30

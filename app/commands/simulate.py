@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -127,6 +128,27 @@ def register(subparsers) -> None:
         help="projector response of a calibration session: grey v in [0, 1] emits v**G "
         "(default: 2.2)",
     )
+    p.add_argument(
+        "--camera-gamma",
+        type=float,
+        default=1.0,
+        metavar="G",
+        help="camera response: DN = 255 (signal / 255) ** (1 / G) (default: 1, linear)",
+    )
+    p.add_argument(
+        "--lens-psf",
+        choices=("gauss", "disk"),
+        default="gauss",
+        help="camera lens blur: gauss, or disk (defocus disc plus halo, which the "
+        "reconstruction does not model) (default: gauss)",
+    )
+    p.add_argument(
+        "--lens-blur",
+        type=float,
+        default=None,
+        metavar="PX",
+        help="lens blur in camera pixels: Gaussian sigma or disc radius (default: 0.6)",
+    )
     p.set_defaults(func=run)
 
 
@@ -158,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
     return simulate_recording(
         rig, args.scene, args.out, frames=args.frames, fps=args.fps, exposure_s=args.exposure,
         seed=args.seed, bit_depth=args.bit_depth, progress=_progress,
+        camera_gamma=args.camera_gamma, lens_psf=args.lens_psf, lens_blur_px=args.lens_blur,
     )  # fmt: skip
 
 
@@ -172,9 +195,14 @@ def simulate_recording(
     seed: int = 0,
     bit_depth: int = 8,
     progress=None,
+    camera_gamma: float = 1.0,
+    lens_psf: str = "gauss",
+    lens_blur_px: float | None = None,
 ) -> int:
     """Render ``frames`` frames of ``scene`` into the recording folder ``out``, with truth.
 
+    ``camera_gamma``, ``lens_psf`` and ``lens_blur_px`` select physics the
+    reconstruction does not model (see :class:`~lightflow.drivers.synthetic.SensorModel`).
     Returns the exit status (0).
     """
     from lightflow.app.evaluation import SCENE_FORMAT, SCENE_JSON, TRUTH_DIR
@@ -195,6 +223,10 @@ def simulate_recording(
             f"--exposure: {exposure:g} s is longer than the frame period 1/fps = "
             f"{1.0 / fps:.4g} s; lower --fps"
         )
+    if not (math.isfinite(camera_gamma) and 0.2 <= camera_gamma <= 5):
+        raise ConfigError(f"--camera-gamma: expected 0.2 .. 5, got {camera_gamma:g}")
+    if lens_blur_px is not None and not (math.isfinite(lens_blur_px) and 0 <= lens_blur_px <= 10):
+        raise ConfigError(f"--lens-blur: expected 0 .. 10 px, got {lens_blur_px:g}")
     out = Path(out)
     if (out / "recording.json").exists():
         raise ConfigError(f"{out}: already holds a recording, choose a new folder")
@@ -209,6 +241,8 @@ def simulate_recording(
         "seed": seed,
         "planar": info.planar,
         "rig_digest": rig.digest(),
+        "sensor": {"camera_gamma": camera_gamma, "lens_psf": lens_psf,
+                   "lens_blur_px": lens_blur_px},
     }
     (tdir / SCENE_JSON).write_text(json.dumps(scene_doc, indent=1) + "\n")
 
@@ -216,7 +250,9 @@ def simulate_recording(
         # runs on the writer thread, after the frame PNG and before recording.json lists it
         frame.extras["truth"].save(root / TRUTH_DIR / f"{frame.stem}.npz")
 
-    sensor = SensorModel(bit_depth=bit_depth)
+    sensor = SensorModel(bit_depth=bit_depth, camera_gamma=camera_gamma, lens_psf=lens_psf)
+    if lens_blur_px is not None:
+        sensor = dataclasses.replace(sensor, lens_blur_px=float(lens_blur_px))
     camera = SyntheticCamera(rig, scene, frames=frames, fps=fps, exposure_s=exposure,
                              seed=seed, sensor=sensor)  # fmt: skip
     # rendering is far slower than writing, so the writer never has to drop a frame
