@@ -230,12 +230,13 @@ def test_matrix_rigs_span_the_geometry_users_build():
             assert 15 <= toe <= 35
             assert 16 <= p.patterns[0].pitch_px <= 40
     cases = list(matrix_cases())
-    assert {c.scene for c in cases} == {"board", "tilted-board", "textured-board", "fan", "ball",
-                                        "two-balls"}  # fmt: skip
+    assert {c.scene for c in cases} >= {"board", "diagonal-board", "newspaper-board", "fan-1ms",
+                                        "ball-toward", "ball-away", "two-balls"}  # fmt: skip
     assert any("distorted" in c.rig_name for c in cases)
     assert any(c.rig_name == "single-projector" for c in cases)
-    assert {c.exposure_s for c in cases if c.scene == "fan"} == {0.001}
+    assert {c.exposure_s for c in cases if c.scene == "fan-1ms"} == {0.001}
     assert {c.exposure_s for c in cases if "ball" in c.scene} == {0.005, 0.008}
+    assert {c.exposure_s for c in cases if "newspaper" in c.scene} == {0.3}
     # a crop sees a point where the full camera does, shifted by the crop's corner
     full = rig_from_dict(generated_rig(REPORT_SEEDS[-1], distorted=True), "gen")
     crop = cropped(full, (800, 600))
