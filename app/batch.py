@@ -26,7 +26,6 @@ frames and timings.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 import os
@@ -57,74 +56,32 @@ BOOK_DIR = ".batch"
 
 # ----------------------------------------------------------------------------- pipeline state
 #
-# DepthPipeline has no public hook to read or seed its cross-frame state, so the
-# functions below are the one place that knows its shape; the batch-equals-replay
-# test fails if it drifts.  A snapshot is every attribute of the pipeline and of its
-# flow model except the large or constant ones listed here, so state added later
-# is carried along without a change here.  What the state pass must know is *when*
-# the state changes: the counters and the conditions in ``STATE_COUNTERS`` and
-# :func:`updates_state`.
-
-#: attributes not part of the state: the rig, the options, the LUT, scratch buffers
-_PIPELINE_CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "_buffers"})
-_FLOW_CONSTANT = frozenset({"rig", "pairs"})
-#: frame counters that schedule the state updates (pipeline, flow model)
-STATE_COUNTERS = ("_frames", "frames")
-
-
-def _require(obj, names) -> None:
-    missing = [n for n in names if not hasattr(obj, n)]
-    if missing:
-        raise RuntimeError(
-            f"{type(obj).__name__} no longer has {missing}: update lightflow.app.batch"
-        )
+# The cross-frame state and its schedule belong to DepthPipeline (state(),
+# restore(), updates_state_at()); the batch-equals-replay test checks the use here.
 
 
 def snapshot_state(pipeline: DepthPipeline) -> dict:
     """The cross-frame state of ``pipeline`` now (a picklable dict of copies)."""
-    _require(pipeline, ("flow_model", STATE_COUNTERS[0]))
-    _require(pipeline.flow_model, (STATE_COUNTERS[1], "_fitted"))
-    return {
-        "pipeline": {k: copy.deepcopy(v) for k, v in vars(pipeline).items()
-                     if k not in _PIPELINE_CONSTANT},
-        "flow": {k: copy.deepcopy(v) for k, v in vars(pipeline.flow_model).items()
-                 if k not in _FLOW_CONSTANT},
-    }  # fmt: skip
-
-
-def set_frame_count(pipeline: DepthPipeline, k: int) -> None:
-    """Make ``pipeline`` process its next frame as the ``k``-th good frame of a replay."""
-    setattr(pipeline, STATE_COUNTERS[0], k)
-    setattr(pipeline.flow_model, STATE_COUNTERS[1], k)
+    return pipeline.state()
 
 
 def restore_state(pipeline: DepthPipeline, state: dict, k: int) -> None:
     """Seed a fresh ``pipeline`` with ``state``, its next frame being the ``k``-th good one."""
-    for name, value in state["pipeline"].items():
-        setattr(pipeline, name, copy.deepcopy(value))
-    for name, value in state["flow"].items():
-        setattr(pipeline.flow_model, name, copy.deepcopy(value))
-    set_frame_count(pipeline, k)
+    pipeline.restore(state, k)
 
 
-#: the state pass processes every one of the first frames: the flow model refits its
-#: blur on several of them (frames 1, 2, 4, 8 at the time of writing) while its pool fills
+def set_frame_count(pipeline: DepthPipeline, k: int) -> None:
+    """Make ``pipeline`` process its next frame as the ``k``-th good frame of a replay."""
+    pipeline.restore({"pipeline": {}, "flow": {}}, k)
+
+
+#: the state pass processes every one of the first frames, while the blur pool fills
 EARLY_FRAMES = 9
 
 
 def updates_state(pipeline: DepthPipeline, k: int) -> bool:
-    """Whether the ``k``-th good frame may change the state (else the state pass skips it).
-
-    Processing a frame that does not change the state is harmless (the counters are set
-    as in the replay), so this may say yes too often, never too rarely: the pipeline
-    relearns leak and windows on every ``crosstalk_every``-th frame; the flow model
-    refits its blur model on every ``blur_refit_frames``-th frame, on early frames,
-    and on every frame until a fit succeeded.
-    """
-    cfg = pipeline.config
-    fitted = pipeline.flow_model._fitted  # no public accessor (see above)
-    return (k < EARLY_FRAMES or k % cfg.crosstalk_every == 0
-            or k % cfg.flow.blur_refit_frames == 0 or not fitted)  # fmt: skip
+    """Whether the ``k``-th good frame may change the state (else the state pass skips it)."""
+    return k < EARLY_FRAMES or pipeline.updates_state_at(k)
 
 
 # ----------------------------------------------------------------------------- worker side

@@ -33,6 +33,9 @@ from .profile_model import (
 )
 from .rig import Rig
 
+#: early frames on which the blur model is refitted while its pool of bands fills
+BLUR_EARLY_REFITS = (1, 2, 4, 8)
+
 
 @dataclass(frozen=True)
 class FlowParams:
@@ -264,6 +267,16 @@ class FlowModel:
         self._u_of = np.interp(grid, ratio[order], u[order])
         self._u_step = (self._u_hi - self._u_lo) / (len(grid) - 1)
 
+    @property
+    def fitted(self) -> bool:
+        """Whether the blur model has been fitted from measured bands yet."""
+        return self._fitted
+
+    def refits_at(self, frame: int, params) -> bool:
+        """Whether :meth:`combine` may refit the blur model on its ``frame``-th call."""
+        return (not self._fitted or frame in BLUR_EARLY_REFITS
+                or frame % params.blur_refit_frames == 0)  # fmt: skip
+
     def combine(
         self, grids: np.ndarray, params: FlowParams
     ) -> tuple[np.ndarray, list[np.ndarray], list[float]]:
@@ -289,7 +302,7 @@ class FlowModel:
         f = self.frames
         # the optics do not change: refit on the pooled bands of the recent frames, often
         # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
-        if not self._fitted or f in (1, 2, 4, 8) or f % params.blur_refit_frames == 0:
+        if self.refits_at(f, params):
             self._refit_blur(grids)
         gh, gw = grids.shape[2:]
         sweeps = np.empty((2, gh, gw), np.float32)

@@ -193,6 +193,49 @@ class DepthPipeline:
 
     # ------------------------------------------------------------------ public
 
+    #: attributes that are not cross-frame state: the rig, options, tables, scratch
+    _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "_buffers", "_full_size"})
+    _FLOW_CONSTANT = frozenset({"rig", "pairs"})
+
+    def state(self) -> dict:
+        """A picklable copy of everything carried from one frame to the next.
+
+        Colour leak, learnt band windows, the blur model and its pool of bands,
+        and the frame counters that schedule their updates.  With
+        :meth:`restore`, a chunk of a recording can start where a sequential
+        replay would be (``lightflow batch``).
+        """
+        import copy
+
+        return {
+            "pipeline": {k: copy.deepcopy(v) for k, v in vars(self).items()
+                         if k not in self._CONSTANT},
+            "flow": {k: copy.deepcopy(v) for k, v in vars(self.flow_model).items()
+                     if k not in self._FLOW_CONSTANT},
+        }  # fmt: skip
+
+    def restore(self, state: dict, frames_done: int | None = None) -> None:
+        """Continue from :meth:`state`; the next frame counts as frame ``frames_done``."""
+        import copy
+
+        for name, value in state["pipeline"].items():
+            setattr(self, name, copy.deepcopy(value))
+        for name, value in state["flow"].items():
+            setattr(self.flow_model, name, copy.deepcopy(value))
+        if frames_done is not None:
+            self._frames = frames_done
+            self.flow_model.frames = frames_done
+
+    def updates_state_at(self, frame: int) -> bool:
+        """Whether the ``frame``-th frame may change the cross-frame state.
+
+        May say yes too often, never too rarely: the leak and windows are
+        relearnt every ``crosstalk_every`` frames, the blur model on its own
+        schedule (:meth:`FlowModel.refits_at`).
+        """
+        return (frame % self.config.crosstalk_every == 0
+                or self.flow_model.refits_at(frame, self.config.flow))  # fmt: skip
+
     def process(self, frame) -> FrameResult:
         """Depth for one frame.  Never raises on image content: bad pixels are NaN."""
         cfg = self.config
