@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from lightflow.app.results import FrameResult, RunStats
+from lightflow.app.sinks.background import BackgroundSink
 
 #: end of stream marker passed down the queues (never dropped)
 _END = object()
@@ -136,6 +137,12 @@ class Runner:
     on_warning : callable, optional
         ``on_warning(text)`` once when the recorder falls behind the camera
         (its queue half full), with the rate needed and the rate achieved.
+    background_sinks : bool
+        Give every sink its own writer thread behind a bounded queue
+        (:class:`~lightflow.app.sinks.background.BackgroundSink`), so the sink
+        thread never waits on a disk.  A sink passed already wrapped keeps its
+        own setting; any other one *blocks* when full, so no result is skipped
+        (drops happen, counted, only in a live run's results queue).
 
     Examples
     --------
@@ -164,10 +171,14 @@ class Runner:
         max_frames: int | None = None,
         count_gaps: bool = True,
         on_warning: Callable[[str], None] | None = None,
+        background_sinks: bool = True,
     ):
         self.camera = camera
         self.pipeline = pipeline
-        self.sinks = list(sinks)
+        self.sinks = [
+            s if not background_sinks or isinstance(s, BackgroundSink) else BackgroundSink(s)
+            for s in sinks
+        ]
         self.on_stats = on_stats
         self.on_result = on_result
         self.lossless = lossless
@@ -342,7 +353,11 @@ class Runner:
             s = self._stats
             s.extra["dropped_frames_queue"] = float(self.frames_q.dropped)
             s.extra["dropped_results_queue"] = float(self.results_q.dropped)
-            s.dropped = self.frames_q.dropped + self.results_q.dropped
+            sink_drops = sum(getattr(k, "dropped", 0) for k in self.sinks
+                             if isinstance(k, BackgroundSink))  # fmt: skip
+            if sink_drops:
+                s.extra["dropped_sinks"] = float(sink_drops)
+            s.dropped = self.frames_q.dropped + self.results_q.dropped + sink_drops
 
     def _process(self) -> None:
         try:

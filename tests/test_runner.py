@@ -312,3 +312,118 @@ def test_auto_exposure_settles_on_synthetic_camera(rig, pipeline):
     assert not last.changed and lo <= last.fraction <= hi
     assert "in the best range" in last.reason
     assert len(lines) == len(decisions)
+
+
+class _Result:
+    """The least a sink needs from a result here: ``frame.index``."""
+
+    def __init__(self, index):
+        self.frame = Frame(index=index, timestamp=float(index), exposure_s=0.01,
+                           image=np.zeros((2, 2), np.uint8))  # fmt: skip
+
+
+class OrderSink:
+    """Records indices; waits on ``gate`` before each write; may fail at one write."""
+
+    def __init__(self, gate=None, fail_at=None):
+        self.gate, self.fail_at = gate, fail_at
+        self.indices: list[int] = []
+        self.threads: set[str] = set()
+        self.closed = 0
+
+    def write(self, result, stats):
+        if self.gate is not None:
+            assert self.gate.wait(WAIT_S)
+        if self.fail_at is not None and result.frame.index == self.fail_at:
+            raise DriverError("test sink: disk full")
+        self.threads.add(threading.current_thread().name)
+        self.indices.append(result.frame.index)
+
+    def close(self):
+        self.closed += 1
+
+
+def test_background_sink_blocking_keeps_every_result_in_order():
+    from lightflow.app.sinks.background import BackgroundSink
+
+    inner = OrderSink()
+    sink = BackgroundSink(inner, maxsize=2, block=True)
+    for i in range(50):
+        sink.write(_Result(i), RunStats())
+    sink.close()
+    assert inner.indices == list(range(50))
+    assert sink.dropped == 0 and sink.written == 50 and inner.closed == 1
+    assert inner.threads == {"lightflow-sink-OrderSink"}  # never the caller's thread
+
+
+def test_background_sink_non_blocking_counts_what_it_skips():
+    from lightflow.app.sinks.background import BackgroundSink
+
+    gate = threading.Event()
+    inner = OrderSink(gate=gate)
+    sink = BackgroundSink(inner, maxsize=3, block=False)
+    stats = RunStats()
+    for i in range(20):  # the writer is held by the gate: at most 1 in hand + 3 queued survive
+        sink.write(_Result(i), stats)
+    gate.set()
+    sink.close()
+    assert len(inner.indices) + sink.dropped == 20
+    assert sink.dropped >= 16
+    assert inner.indices == sorted(inner.indices) and inner.indices[-1] == 19
+    assert stats.extra["dropped_sink_OrderSink"] == sink.dropped
+    assert "SKIPPED" in sink.describe()
+
+
+def test_background_sink_error_reaches_the_caller():
+    from lightflow.app.sinks.background import BackgroundSink
+
+    inner = OrderSink(fail_at=3)
+    sink = BackgroundSink(inner, maxsize=2)
+    with pytest.raises(DriverError, match="disk full"):
+        for i in range(100):
+            sink.write(_Result(i), RunStats())
+        sink.close()
+    assert inner.indices == [0, 1, 2]
+    with pytest.raises(DriverError):
+        sink.close()
+    assert inner.closed == 1
+
+
+@pytest.fixture(scope="module")
+def small_recording(rig, tmp_path_factory):
+    from lightflow.app.recording import RecordingWriter
+
+    root = tmp_path_factory.mktemp("rec") / "rec"
+    cam = SyntheticCamera(rig, "board", frames=9, sensor=SensorModel(samples=1))
+    with cam, RecordingWriter(root, rig, cam.exposure_s) as writer:
+        for frame in cam.frames():
+            writer.write(frame)
+    return root
+
+
+@pytest.mark.parametrize("read_ahead", [1, 4])
+def test_replay_read_ahead_keeps_order_and_pixels(small_recording, read_ahead):
+    from lightflow.drivers.replay import RecordedCamera
+
+    def replay(n):
+        cam = RecordedCamera(small_recording, read_ahead=n)
+        with cam:
+            return [(f.index, f.name, f.image) for f in cam.frames()]
+
+    plain, ahead = replay(0), replay(read_ahead)
+    assert [(i, n) for i, n, _ in ahead] == [(i, n) for i, n, _ in plain]
+    assert len(plain) == 9
+    for (_, _, a), (_, _, b) in zip(plain, ahead, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_replay_read_ahead_ends_its_reader_when_the_consumer_stops(small_recording):
+    from lightflow.drivers.replay import RecordedCamera
+
+    cam = RecordedCamera(small_recording, loop=True, read_ahead=2)
+    with cam:
+        frames = cam.frames()
+        got = [next(frames).index for _ in range(12)]  # more than one lap
+        frames.close()
+    assert got == list(range(12))
+    assert not any(t.name == "lightflow-replay-reader" for t in threading.enumerate())
