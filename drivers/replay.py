@@ -105,6 +105,8 @@ class RecordedCamera(Camera):
         lap_s = entries[-1].t - t0 + (period or self.exposure_s)
         wall0 = time.perf_counter()
         for lap, i, image in self._decoded():
+            if self._stop.is_set():
+                return  # stop() ends the stream at once, decoded frames or not
             entry = entries[i]
             rel_t = entry.t - t0 + lap * lap_s
             if self.realtime:
