@@ -136,22 +136,38 @@ def matrix_cases(crop: tuple[int, int] | None = (800, 600), tuning: bool = False
             yield MatrixCase(name, seen, scene, exposure)
 
 
+def renderer_version() -> str:
+    """A hash of the simulator's source: recordings of another renderer are rendered anew."""
+    import hashlib
+
+    drivers = Path(__file__).resolve().parent.parent / "drivers"
+    digest = hashlib.sha256()
+    for name in ("render.py", "scenes.py", "synthetic.py"):
+        path = drivers / name
+        if path.is_file():
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
                progress=None, log=print) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
 
-    Recordings are kept in ``out/<case>/`` and reused when the rig and scene match,
-    so a second run only replays.
+    Recordings are kept in ``out/<case>/`` and reused when the rig, the scene, the
+    exposure and the renderer's source match, so a second run only replays.
     """
     from lightflow.app.commands.simulate import simulate_recording
     from lightflow.app.evaluation import evaluate_recording, read_scene_info
 
     results = []
     cases = list(matrix_cases(crop, tuning))
+    version = renderer_version()
     for n, case in enumerate(cases, 1):
         rec = out / case.name
         info = read_scene_info(rec) if (rec / "recording.json").exists() else {}
-        if info.get("rig_digest") != case.rig.digest():
+        marker = rec / ".renderer"
+        current = marker.is_file() and marker.read_text() == version
+        if info.get("rig_digest") != case.rig.digest() or not current:
             if rec.exists():
                 import shutil
 
@@ -159,6 +175,7 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
             log(f"[{n}/{len(cases)}] rendering {case.name} ...")
             simulate_recording(case.rig, case.scene, rec, frames=frames, fps=10,
                                exposure_s=case.exposure_s, seed=n, progress=progress)  # fmt: skip
+            marker.write_text(version)
         log(f"[{n}/{len(cases)}] scoring {case.name} ...")
         results.append((case, evaluate_recording(rec, progress=progress)))
     return results
