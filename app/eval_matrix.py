@@ -173,7 +173,8 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
 
                 shutil.rmtree(rec)
             log(f"[{n}/{len(cases)}] rendering {case.name} ...")
-            simulate_recording(case.rig, case.scene, rec, frames=frames, fps=10,
+            fps = min(10.0, 0.8 / case.exposure_s)  # the exposure must fit in the frame period
+            simulate_recording(case.rig, case.scene, rec, frames=frames, fps=fps,
                                exposure_s=case.exposure_s, seed=n, progress=progress)  # fmt: skip
             marker.write_text(version)
         log(f"[{n}/{len(cases)}] scoring {case.name} ...")
