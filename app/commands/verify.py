@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from collections import Counter
 
 from lightflow.app.errors import ConfigError, FrameError
 from lightflow.app.recording import (
@@ -12,6 +11,7 @@ from lightflow.app.recording import (
     load_frame,
     read_recording,
     repair_recording,
+    timestamp_problems,
     unlisted_files,
 )
 from lightflow.app.rig import resolve_rig
@@ -79,17 +79,8 @@ def check_recording(rec: Recording) -> list[str]:
         )
     for p in temporary:
         problems.append(f"{p}: leftover temporary file (an interrupted write; --repair removes it)")
-    counts = Counter(e.file for e in rec.frames)
-    for file, n in sorted(counts.items()):
-        if n > 1:
-            problems.append(f"{src}: frames: {file} is listed {n} times")
-    for i in range(1, len(rec.frames)):
-        prev, cur = rec.frames[i - 1].t, rec.frames[i].t
-        if not cur > prev:
-            problems.append(
-                f"{src}: frames[{i}].t: {cur:g} s does not increase "
-                f"(frames[{i - 1}].t = {prev:g} s)"
-            )
+    # a frame listed twice never gets here: read_recording refuses it
+    problems += timestamp_problems(rec)
     for i in range(len(rec.frames)):
         try:
             load_frame(rec, i)
