@@ -18,6 +18,14 @@ is not counted; the depth table (LUT) is built or loaded before timing, and a
 warm-up pass compiles the numba kernels.  Reported: median and 90th percentile
 per stage, the wall time per frame and the frame rate.
 
+End to end: the rendered frames are written as a recording (PNG, like
+`capture --record`), then replayed into the same (warm) pipeline with a
+depth export (.npy), as `lightflow replay REC --export-depth OUT` does:
+decoding runs ahead on a reader thread and the export writes on its own
+thread, so the stages overlap.  Reported: frames per second and wall time per
+frame of the whole replay, and the median time per stage (decode, pipeline,
+write) measured inside that run.  --e2e-frames 0 skips it.
+
 With --recorder, also measures the sustained write rate of the recorder
 (1600x1200 RGB PNG at 30 fps for 5 s): frames/s, MiB/s and dropped frames."""
 
@@ -25,7 +33,11 @@ EPILOG = """\
 examples:
   lightflow bench                       # two-projector rig, board scene, 1600x1200
   lightflow bench --rig single-projector --frames 50
-  lightflow bench --recorder            # also the recorder: 1600x1200 PNG at 30 fps"""
+  lightflow bench --recorder            # also the recorder: 1600x1200 PNG at 30 fps
+  lightflow bench --e2e-frames 40       # a longer end-to-end replay with export"""
+
+#: frames in the end-to-end replay by default
+E2E_FRAMES = 16
 
 
 WARMUP = 2
@@ -63,6 +75,13 @@ def register(subparsers) -> None:
         default=None,
         choices=(1, 2, 4),
         help="analysis grid stride (default: the pipeline's)",
+    )
+    p.add_argument(
+        "--e2e-frames",
+        type=int,
+        default=E2E_FRAMES,
+        metavar="N",
+        help=f"frames in the end-to-end replay with export (default: {E2E_FRAMES}; 0: skip it)",
     )
     p.add_argument("--recorder", action="store_true", help="also benchmark the recording writer")
     p.set_defaults(func=run)
@@ -135,9 +154,91 @@ def run(args: argparse.Namespace) -> int:
         f"\n{1e3 / med:.1f} frames/s (median wall time {med:.1f} ms over {args.frames} frames,"
         f" {sum(wall) / 1e3:.2f} s in all)"
     )
+    if args.e2e_frames < 0:
+        raise ConfigError(f"--e2e-frames: expected 0 or more, got {args.e2e_frames}")
+    if args.e2e_frames:
+        for line in end_to_end(rig, pipeline, frames, args.e2e_frames):
+            print(line)
     if args.recorder:
         _run_recorder()
     return 0
+
+
+class _TimedExport:
+    """A depth export that records how long each write took (on its writer thread)."""
+
+    def __init__(self, sink):
+        self.sink = sink
+        self.write_ms: list[float] = []
+
+    def write(self, result, stats) -> None:
+        t = time.perf_counter()
+        self.sink.write(result, stats)
+        self.write_ms.append((time.perf_counter() - t) * 1e3)
+
+    def close(self) -> None:
+        self.sink.close()
+
+
+def end_to_end(rig, pipeline, frames, n: int) -> list[str]:
+    """Replay an ``n``-frame recording of ``frames`` with a depth export; the report lines.
+
+    The pipeline must be warm (depth table loaded, kernels compiled): start-up
+    is not what this measures.
+    """
+    import dataclasses
+    import tempfile
+    from pathlib import Path
+
+    from lightflow.app.recording import RecordingWriter, load_frame
+    from lightflow.app.runner import Runner
+    from lightflow.app.sinks.depth_export import DepthExportSink
+    from lightflow.drivers.replay import RecordedCamera
+
+    cam = rig.camera
+    with tempfile.TemporaryDirectory(prefix="lightflow-bench-") as tmp:
+        rec, out = Path(tmp) / "rec", Path(tmp) / "depth"
+        period = 1.0 / 30
+        with RecordingWriter(rec, rig, frames[0].exposure_s, put_timeout_s=None) as writer:
+            for i in range(n):
+                f = frames[i % len(frames)]
+                writer.write(dataclasses.replace(f, index=i, timestamp=i * period, name=""))
+                _progress("writing the recording", i + 1, n)
+        camera = RecordedCamera(rec, rig=rig)
+        decode_ms = []
+        for i in range(min(n, 8)):  # the decode cost alone, as the reader thread pays it
+            t = time.perf_counter()
+            load_frame(camera.recording, i)
+            decode_ms.append((time.perf_counter() - t) * 1e3)
+        export = _TimedExport(DepthExportSink(out))
+        pipeline_ms: list[float] = []
+        runner = Runner(
+            camera,
+            pipeline,
+            [export],
+            lossless=True,
+            count_gaps=False,
+            on_result=lambda r: pipeline_ms.append(r.timings_ms.get("total", 0.0)),
+        )
+        t = time.perf_counter()
+        with camera:
+            stats = runner.run()
+        wall = time.perf_counter() - t
+        exported = len(list(out.glob("*.npy")))
+    per_frame = wall / n * 1e3
+    sequential = float(np.median(decode_ms) + np.median(pipeline_ms) + np.median(export.write_ms))
+    return [
+        "",
+        f"end to end: replay of a {n}-frame {cam.width}x{cam.height} recording with "
+        f"--export-depth (decode, pipeline and write overlapped)",
+        f"  {n / wall:.1f} frames/s, {per_frame:.1f} ms per frame wall "
+        f"({wall:.2f} s in all, threads' start-up included)",
+        f"  per stage, median ms: decode {np.median(decode_ms):.1f}, pipeline "
+        f"{np.median(pipeline_ms):.1f}, write {np.median(export.write_ms):.1f} "
+        f"(one after the other: {sequential:.1f})",
+        f"  frames processed {stats.frames_done} of {n}, exported {exported}, "
+        f"dropped {stats.dropped}",
+    ]
 
 
 def _run_recorder() -> None:
