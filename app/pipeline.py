@@ -193,6 +193,28 @@ class DepthPipeline:
 
     # ------------------------------------------------------------------ public
 
+    def warm_up(self) -> float:
+        """Compile the kernels and load the tables before a camera streams; return seconds.
+
+        The first frame through a fresh process costs hundreds of milliseconds
+        (numba compilation, table loading); done while a camera streams, that
+        stall would back up into the camera.  A scratch pipeline sharing this
+        one's depth table processes a striped test image, so this pipeline's
+        learnt state (colour leak, windows) still starts from real frames.
+        """
+        from types import SimpleNamespace
+
+        t0 = time.perf_counter()
+        cam = self.rig.camera
+        x = np.arange(cam.width)
+        image = np.full((cam.height, cam.width, 3), 20, np.uint8)
+        image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
+        image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
+        scratch = DepthPipeline(self.rig, self.config, lut=self.lut)
+        # process() needs only these of a Frame (the core does not import drivers)
+        scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
+        return time.perf_counter() - t0
+
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "_buffers", "_full_size"})
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})

@@ -5,9 +5,6 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
-import time
-
-import numpy as np
 
 from lightflow.app.errors import ConfigError, FrameError
 
@@ -112,39 +109,6 @@ def parse_exposure(text: str | None) -> float | str | None:
     return ms / 1e3
 
 
-def warm_up(pipeline, log=print) -> float:
-    """Compile the pipeline's kernels and load its tables before the camera streams.
-
-    The first frame through a fresh process costs hundreds of milliseconds
-    (numba compilation, table loading); done while the camera streams, that
-    stall would back up into the camera.  A scratch pipeline sharing the depth
-    table processes one striped test image, so the real pipeline's learnt
-    state (colour leak, windows) starts from real frames.
-
-    Returns
-    -------
-    float
-        Seconds it took.
-    """
-    from lightflow.app.pipeline import DepthPipeline
-    from lightflow.drivers.base import Frame
-
-    if not isinstance(pipeline, DepthPipeline):
-        return 0.0
-    log("warming up (compiling kernels, loading the depth and blur tables) ...", flush=True)
-    t0 = time.perf_counter()
-    cam = pipeline.rig.camera
-    x = np.arange(cam.width)
-    image = np.full((cam.height, cam.width, 3), 20, np.uint8)
-    image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
-    image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
-    scratch = DepthPipeline(pipeline.rig, pipeline.config, lut=pipeline.lut)
-    scratch.process(Frame(index=0, timestamp=0.0, exposure_s=0.01, image=image))
-    took = time.perf_counter() - t0
-    log(f"warmed up in {took:.1f} s", flush=True)
-    return took
-
-
 def run(args: argparse.Namespace) -> int:
     from lightflow.app.exposure import BlurAwareExposure, settle_exposure
     from lightflow.app.recording import RecordingWriter
@@ -196,7 +160,9 @@ def run(args: argparse.Namespace) -> int:
                   flush=True)
         else:
             print(f"exposure: {camera.exposure_s * 1e3:.3g} ms (the camera's)", flush=True)
-        warm_up(pipeline, log=print)
+        # before the camera streams: a first-frame stall would back up into the camera
+        print("warming up (compiling kernels, loading the depth and blur tables) ...", flush=True)
+        print(f"warmed up in {pipeline.warm_up():.1f} s", flush=True)
         sinks = build_sinks(args, rig)
         try:
             recorder = None

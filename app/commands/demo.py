@@ -170,7 +170,6 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.status import StatusLine
     from lightflow.drivers.synthetic import SyntheticCamera
 
-    from .capture import warm_up
     from .replay import close_all, make_pipeline
 
     start = time.perf_counter()
@@ -209,7 +208,9 @@ def run(args: argparse.Namespace) -> int:
         print("[2/3] the depth pipeline: depth table and kernels (the first run "
               "builds and caches them)", flush=True)
         pipeline = make_pipeline(rig, args)
-        warm_up(pipeline, log=lambda *a, **k: print("     ", *a, **k))
+        print("      warming up (compiling kernels, loading the depth and blur tables) ...",
+              flush=True)
+        print(f"      warmed up in {pipeline.warm_up():.1f} s", flush=True)
         if helper is not None:
             helper.wait()
     finally:
