@@ -11,14 +11,14 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 from aravis_sim import SIM_ADDRESS
+from bench_capture import scaled_rig
 from rerun.chunk import RrdReader
 
 from lightflow.app.cli import main
 from lightflow.app.recording import load_frame, read_recording
-from lightflow.app.rig import load_rig, rig_from_dict
+from lightflow.app.rig import load_rig
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"
@@ -110,19 +110,7 @@ def test_capture_bad_uri(capsys):
 @pytest.fixture(scope="module")
 def sim_rig_file(tmp_path_factory) -> Path:
     """The example rig with its camera intrinsics scaled to the simulator's 512x512 image."""
-    d = load_rig(RIG_FILE).to_dict()
-    cam = d["camera"]
-    sx, sy = SIM_SIZE[0] / cam["width"], SIM_SIZE[1] / cam["height"]
-    K = np.array(cam["K"])
-    K[0] *= sx
-    K[1] *= sy
-    K[0, 2] += 0.5 * sx - 0.5
-    K[1, 2] += 0.5 * sy - 0.5
-    cam.update(width=SIM_SIZE[0], height=SIM_SIZE[1], K=K.tolist())
-    rig = rig_from_dict(d, "test rig")
-    path = tmp_path_factory.mktemp("simrig") / "rig.json"
-    path.write_text(json.dumps(rig.to_dict()))
-    return path
+    return scaled_rig(*SIM_SIZE, tmp_path_factory.mktemp("simrig") / "rig.json")
 
 
 @pytest.mark.aravis
