@@ -657,6 +657,10 @@ class AravisCamera(Camera):
             if self._acq_thread is not None:
                 self._acq_thread.join()  # it leaves within one pop timeout
                 self._acq_thread = None
+            with self._pending_cond:  # copied out after stop(), or never asked for
+                self._discarded_at_stop += len(self._pending)
+                self._pending.clear()
+                self._pending_bytes = 0
             self._end_stream()
             self._streaming_thread = None
             self._idle.set()
