@@ -17,7 +17,7 @@ dropped from that queue when the consumer fell behind by more than the cap
 (``dropped_in_driver``, the oldest go first), frames still queued when
 :meth:`V4L2Camera.stop` ended the stream (``discarded_at_stop``), gaps in the
 kernel's sequence numbers (``missing_frames``), error-flagged buffers
-(``failures``) and frames that could not be decoded (``undecodable``).
+(``failures``) and frames that could not be decoded (``bad_buffers``).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ _GONE = {errno.ENODEV, errno.ENXIO, errno.EIO, errno.ESHUTDOWN}
 
 #: the counters of :meth:`V4L2Camera.stats`
 _COUNTS = ("delivered", "failures", "missing_frames", "dropped_in_driver", "discarded_at_stop",
-           "undecodable")
+           "bad_buffers")
 
 PERMISSION_HINT = (
     "add your user to the 'video' group (sudo usermod -aG video $USER, then log in again) "
@@ -572,7 +572,7 @@ class V4L2Camera(Camera):
             try:
                 image = convert_frame(data, self.pixel_format, width, height, stride)
             except DriverError:
-                self._counts["undecodable"] += 1  # e.g. a truncated MJPG frame
+                self._counts["bad_buffers"] += 1  # e.g. a truncated MJPG frame
                 continue
             self._counts["delivered"] += 1
             exposure = self._exposure_s if not math.isnan(self._exposure_s) else 0.0
@@ -584,7 +584,8 @@ class V4L2Camera(Camera):
         ``delivered``; ``failures`` (error-flagged buffers); ``missing_frames``
         (gaps in the kernel's sequence numbers); ``dropped_in_driver`` (the
         consumer fell behind by more than ``max_pending_mib``);
-        ``discarded_at_stop``; ``undecodable``.  Kept after streaming ends.
+        ``discarded_at_stop``; ``bad_buffers`` (frames that could not be
+        decoded).  Kept after streaming ends.
         """
         out = {k: float(v) for k, v in self._counts.items()}
         out["buffers"] = float(self.pool_size)

@@ -88,6 +88,7 @@ class FakeV4L2IO:
         self.lost_frames = 0
         self.dequeued = 0
         self.error_frames: set[int] = set()
+        self.truncated_frames: set[int] = set()  # sent cut short (a broken MJPG frame)
         self.unplugged = False
         self.lock = threading.RLock()  # the acquisition thread and the test's both call in
         self.changed = threading.Condition(self.lock)
@@ -333,7 +334,8 @@ class FakeV4L2IO:
         if not self.done:
             raise BlockingIOError(errno.EAGAIN, "Resource temporarily unavailable")
         index, sequence = self.done.popleft()
-        buf.index, buf.bytesused, buf.sequence = index, len(self._encode()), sequence
+        used = 100 if sequence in self.truncated_frames else len(self._encode())
+        buf.index, buf.bytesused, buf.sequence = index, used, sequence
         buf.flags = v.BUF_FLAG_ERROR if sequence in self.error_frames else 0
         t = sequence * self.period_s
         buf.timestamp.tv_sec, buf.timestamp.tv_usec = int(t), round((t % 1) * 1e6)
@@ -425,7 +427,7 @@ def test_stream_each_format(image, code, tolerance):
         frames = grab(cam, 12)
         stats = cam.stats()
         assert stats["delivered"] == 12 and stats["buffers"] == 30  # 1 s at 30 fps
-        assert stats["failures"] == stats["missing_frames"] == stats["undecodable"] == 0
+        assert stats["failures"] == stats["missing_frames"] == stats["bad_buffers"] == 0
         assert stats["dropped_in_driver"] == 0 and io.lost_frames == 0
         assert not io.streaming and not io.maps  # STREAMOFF and REQBUFS(0) on the way out
     assert not io.open_fds
@@ -498,6 +500,15 @@ def test_error_buffers_are_counted_and_skipped(image):
         frames = grab(cam, 5)
         assert [f.index for f in frames] == [0, 1, 4, 5, 6]
         assert cam.stats()["failures"] == 2 and cam.stats()["missing_frames"] == 0
+
+
+def test_undecodable_frames_are_counted_and_skipped(image):
+    io = FakeV4L2IO(image, formats=("MJPG",))
+    io.truncated_frames = {2}
+    with V4L2Camera("/dev/video0", io=io) as cam:
+        frames = grab(cam, 5)
+        assert [f.index for f in frames] == [0, 1, 3, 4, 5]
+        assert cam.stats()["bad_buffers"] == 1 and cam.stats()["failures"] == 0
 
 
 def test_unplugged_mid_stream(image):
