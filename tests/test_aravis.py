@@ -226,11 +226,14 @@ def test_capture_after_a_crashed_capture(sim, sim_rig_file, tmp_path):
     with Holder() as holder:
         proc = _capture(sim_rig_file, "--frames", "20", "--record", str(rec), "--lossless",
                         "--control-wait", "60")
+        watchdog = threading.Timer(120, proc.kill)  # bounds the wait for its first line
+        watchdog.start()
         try:
             waiting = proc.stderr.readline()
             holder.kill()  # kill -9 while the capture waits for control
             out, err = proc.communicate(timeout=120)
         finally:
+            watchdog.cancel()
             if proc.poll() is None:
                 proc.kill()
                 proc.communicate()
