@@ -97,36 +97,41 @@ def _sliding_mid(x, win, out):
 
     Only a segmentation level is needed, so it is computed on blocks of
     ``win // 8`` samples (block maxima and minima, then a sliding window over
-    blocks), which costs one pass over the row.
+    blocks), which costs one pass over the row.  The loops run across blocks
+    (one offset at a time) rather than along one block, so that neighbouring
+    maxima do not wait on each other: a running maximum is a chain of
+    dependent instructions.
     """
     n = x.shape[0]
     q = max(1, win // 8)
     nb_ = (n + q - 1) // q
-    bmax = np.empty(nb_)
-    bmin = np.empty(nb_)
-    for b in range(nb_):
-        lo = b * q
-        hi = min(n, lo + q)
-        mx = x[lo]
-        mn = x[lo]
-        for j in range(lo + 1, hi):
-            v = x[j]
-            if v > mx:
-                mx = v
-            elif v < mn:
-                mn = v
-        bmax[b] = mx
-        bmin[b] = mn
+    full = n // q  # blocks without the short last one
     r = max(1, (win // q) // 2)
+    s = np.empty((4, nb_))
+    bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
     for b in range(nb_):
-        mx = bmax[b]
-        mn = bmin[b]
-        for c in range(max(0, b - r), min(nb_, b + r + 1)):
-            if bmax[c] > mx:
-                mx = bmax[c]
-            if bmin[c] < mn:
-                mn = bmin[c]
-        mid = 0.5 * (mx + mn)
+        bmax[b] = x[b * q]
+        bmin[b] = x[b * q]
+    for t in range(1, q):
+        for b in range(full):
+            v = x[b * q + t]
+            bmax[b] = max(bmax[b], v)
+            bmin[b] = min(bmin[b], v)
+    for j in range(full * q + 1, n):
+        bmax[full] = max(bmax[full], x[j])
+        bmin[full] = min(bmin[full], x[j])
+    wmax[:] = bmax
+    wmin[:] = bmin
+    for c in range(1, r + 1):
+        for b in range(nb_ - c):
+            wmax[b] = max(wmax[b], bmax[b + c])
+            wmin[b] = min(wmin[b], bmin[b + c])
+        for b in range(c, nb_):
+            wmax[b] = max(wmax[b], bmax[b - c])
+            wmin[b] = min(wmin[b], bmin[b - c])
+    for b in range(nb_):
+        mid = 0.5 * (wmax[b] + wmin[b])
+        mn = wmin[b]
         for j in range(b * q, min(n, b * q + q)):
             out[0, j] = mid
             out[1, j] = mn
@@ -473,10 +478,19 @@ def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
     cells = counts.shape[0] // k
     for i in nb.prange(cells):
         buf = np.empty((nf, 1, gw))
+        tbuf = np.empty(gw)
+        if k == 1:
+            # one row per cell: its values are the cell's (0.0 + v: the same value, and
+            # the same +0.0 for -0.0, as the average below)
+            _rasterise_row(bands, counts, i, stride, gw, reach, fields, buf, tbuf)
+            for f in range(nf):
+                for j in range(gw):
+                    out[f, i, j] = 0.0 + buf[f, 0, j] if not np.isnan(buf[0, 0, j]) else np.nan
+            continue
         acc = np.zeros((nf, gw))
         n = np.zeros(gw, np.int64)
         for q in range(k):
-            _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf)
+            _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, tbuf)
             for j in range(gw):
                 if not np.isnan(buf[0, 0, j]):
                     n[j] += 1
@@ -543,13 +557,13 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
 
 
 @nb.njit(cache=True)
-def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
+def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, t):
     """Interpolate the band fields of measured row ``r`` onto the grid columns.
 
     ``maps[f, 0, :]`` receives field ``fields[f]`` (``fields[1]`` must be the
     interval).  Values are interpolated linearly between neighbouring valid bands
     at most 1.6 intervals apart and extrapolated linearly ``reach`` intervals
-    beyond the ends of each run; elsewhere NaN.
+    beyond the ends of each run; elsewhere NaN.  ``t``: scratch of ``gw`` values.
     """
     nf = fields.shape[0]
     off = 0.5 * (stride - 1)
@@ -566,13 +580,16 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
             c0 = bands[r, prev, F_CENTRE]
             c1 = bands[r, k, F_CENTRE]
             if 0.0 < c1 - c0 <= 1.6 * max(bands[r, prev, F_INTERVAL], bands[r, k, F_INTERVAL]):
-                j0 = int(np.ceil((c0 - off) / stride))
-                j1 = int(np.floor((c1 - off) / stride))
-                for j in range(max(j0, 0), min(j1, gw - 1) + 1):
-                    t = (j * stride + off - c0) / (c1 - c0)
-                    for f in range(nf):
-                        v0 = bands[r, prev, fields[f]]
-                        maps[f, i, j] = v0 + t * (bands[r, k, fields[f]] - v0)
+                j0 = max(int(np.ceil((c0 - off) / stride)), 0)
+                j1 = min(int(np.floor((c1 - off) / stride)), gw - 1)
+                # positions first, then one field at a time: loops without reloads
+                for j in range(j0, j1 + 1):
+                    t[j] = (j * stride + off - c0) / (c1 - c0)
+                for f in range(nf):
+                    v0 = bands[r, prev, fields[f]]
+                    dv = bands[r, k, fields[f]] - v0
+                    for j in range(j0, j1 + 1):
+                        maps[f, i, j] = v0 + t[j] * dv
         # a band without partner still marks its own grid sample
         c = bands[r, k, F_CENTRE]
         jc = int(np.floor((c - off) / stride + 0.5))
