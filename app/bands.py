@@ -64,10 +64,24 @@ class BandParams:
 
 
 @nb.njit(cache=True, inline="always")
-def _crossing_left(x, j, level):
-    # walk left from j (x[j] >= level) to the first sample below level
+def _walk_left(x, j, level):
+    # from j (x[j] >= level) left to the last sample at or above level
     while j > 0 and x[j - 1] >= level:
         j -= 1
+    return j
+
+
+@nb.njit(cache=True, inline="always")
+def _walk_right(x, j, level):
+    n = x.shape[0]
+    while j < n - 1 and x[j + 1] >= level:
+        j += 1
+    return j
+
+
+@nb.njit(cache=True, inline="always")
+def _at_left(x, j, level):
+    # the crossing below a walk's end j, linearly interpolated
     if j == 0:
         return -1.0
     a = x[j - 1]
@@ -78,10 +92,8 @@ def _crossing_left(x, j, level):
 
 
 @nb.njit(cache=True, inline="always")
-def _crossing_right(x, j, level):
+def _at_right(x, j, level):
     n = x.shape[0]
-    while j < n - 1 and x[j + 1] >= level:
-        j += 1
     if j == n - 1:
         return -1.0
     a = x[j]
@@ -146,7 +158,6 @@ def _row_signals(img, y0, y1, weights, out):
     """
     h, w = img.shape[0], img.shape[1]
     n_p = weights.shape[0]
-    out[:, :] = 0.0
     for p in range(n_p):
         # the (at most two) channels with a weight
         c0 = -1
@@ -159,6 +170,19 @@ def _row_signals(img, y0, y1, weights, out):
                     c1 = c
         w0 = weights[p, c0] if c0 >= 0 else 0.0
         w1 = weights[p, c1] if c1 >= 0 else 0.0
+        if y0 == y1:
+            # one row (the usual case): written at once, the same values as summed below
+            yy = min(max(y0, 0), h - 1)
+            if c1 >= 0:
+                for j in range(w):
+                    out[p, j] = 0.0 + (w0 * img[yy, j, c0] + w1 * img[yy, j, c1])
+            elif c0 >= 0:
+                for j in range(w):
+                    out[p, j] = 0.0 + w0 * img[yy, j, c0]
+            else:
+                out[p, :] = 0.0
+            continue
+        out[p, :] = 0.0
         for y in range(y0, y1 + 1):
             yy = min(max(y, 0), h - 1)
             if c1 >= 0:
@@ -167,10 +191,11 @@ def _row_signals(img, y0, y1, weights, out):
             elif c0 >= 0:
                 for j in range(w):
                     out[p, j] += w0 * img[yy, j, c0]
-    inv = 1.0 / (y1 - y0 + 1)
-    for p in range(n_p):
-        for j in range(w):
-            out[p, j] *= inv
+    if y1 > y0:
+        inv = 1.0 / (y1 - y0 + 1)
+        for p in range(n_p):
+            for j in range(w):
+                out[p, j] *= inv
 
 
 @nb.njit(cache=True)
@@ -207,29 +232,33 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     n = x.shape[0]
     max_b = out.shape[0]
     # segments above the sliding mid-level
-    seg_a = np.empty(max_b + 1, np.int64)
-    seg_b = np.empty(max_b + 1, np.int64)
+    seg = np.empty((2, max_b + 1), np.int64)
+    seg_a = seg[0]
+    seg_b = seg[1]
+    lev = thr[0]
     ns = 0
     j = 0
     while j < n and ns < max_b + 1:
-        if x[j] > thr[0, j]:
-            a = j
-            while j < n and x[j] > thr[0, j]:
-                j += 1
-            b = j - 1
-            # noise on a low ramp can dip below the level for a sample or two:
-            # such a split is one band, and a lone sample above it no band
-            if ns > 0 and a - seg_b[ns - 1] - 1 <= 2:
-                seg_b[ns - 1] = b
-            elif b > a:
-                seg_a[ns] = a
-                seg_b[ns] = b
-                ns += 1
-        else:
+        while j < n and not x[j] > lev[j]:
             j += 1
+        if j == n:
+            break
+        a = j
+        while j < n and x[j] > lev[j]:
+            j += 1
+        b = j - 1
+        # noise on a low ramp can dip below the level for a sample or two:
+        # such a split is one band, and a lone sample above it no band
+        if ns > 0 and a - seg_b[ns - 1] - 1 <= 2:
+            seg_b[ns - 1] = b
+        elif b > a:
+            seg_a[ns] = a
+            seg_b[ns] = b
+            ns += 1
     ns = min(ns, max_b)
-    gap_lv = np.empty(ns + 1)
-    gap_dp = np.empty(ns + 1)
+    gaps = np.empty((2, ns + 1))
+    gap_lv = gaps[0]
+    gap_dp = gaps[1]
     gap_done = np.zeros(ns + 1, np.bool_)
     for k in range(ns):
         for f in range(N_FIELDS):
@@ -259,15 +288,20 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         br, vr = gap_lv[k + 1], gap_dp[k + 1]
         # first pass: half of the maximum
         jm = a
-        for i in range(a, b + 1):
-            if x[i] > x[jm]:
+        top = x[a]
+        for i in range(a + 1, b + 1):
+            v = x[i]
+            if v > top:
+                top = v
                 jm = i
         bg = 0.5 * (bl + br)
-        top = x[jm]
         if top - bg < min_contrast:
             continue
-        xl = _crossing_left(x, jm, bg + 0.5 * (top - bg))
-        xr = _crossing_right(x, jm, bg + 0.5 * (top - bg))
+        level1 = bg + 0.5 * (top - bg)
+        sl = _walk_left(x, jm, level1)
+        sr = _walk_right(x, jm, level1)
+        xl = _at_left(x, sl, level1)
+        xr = _at_right(x, sr, level1)
         if xl < 0 or xr < 0:
             continue
         # plateau: mean over the central half of the band (the max alone is biased by noise)
@@ -291,13 +325,18 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         if height < min_contrast:
             continue
         level = bg + 0.5 * height
-        xl = _crossing_left(x, jm, level)
-        xr = _crossing_right(x, jm, level)
+        # a walk to a lower level passes where the walk to a higher one ended
+        # (every sample from there to the peak is above both): it starts there
+        wl = _walk_left(x, sl if level <= level1 else jm, level)
+        wr = _walk_right(x, sr if level <= level1 else jm, level)
+        xl = _at_left(x, wl, level)
+        xr = _at_right(x, wr, level)
         if xl < 0 or xr < 0:
             continue
         # ramps at 20 % height: symmetric for a band the surface carried whole
-        x20l = _crossing_left(x, jm, bg + 0.2 * height)
-        x20r = _crossing_right(x, jm, bg + 0.2 * height)
+        level20 = bg + 0.2 * height
+        x20l = _at_left(x, _walk_left(x, wl if level20 <= level else jm, level20), level20)
+        x20r = _at_right(x, _walk_right(x, wr if level20 <= level else jm, level20), level20)
         if x20l < 0 or x20r < 0:
             continue
         ramp_l = xl - x20l
