@@ -33,6 +33,12 @@ F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLA
 N_FIELDS = 9
 #: fields interpolated onto the grid by :func:`rasterise_cells`
 GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP, F_SLANT)
+#: ``F_VALID`` of a band: 1 for a valid band, else why it was rejected (:mod:`.causes`)
+BAND_VALID = 1.0
+BAND_FAINT = -1.0  # too little contrast, or no clean half-height crossings
+BAND_CUT = -2.0  # one sharp side (an object edge) or running into the image border
+BAND_OVERLAP = -3.0  # no clean gap to a neighbour: bands merge
+BAND_IRREGULAR = -4.0  # dips inside (print, an edge), intervals or heights that disagree
 
 
 @dataclass(frozen=True)
@@ -270,6 +276,7 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_START] = a
         out[k, F_END] = b
         if a == 0 or b == n - 1:
+            out[k, F_VALID] = BAND_CUT
             continue  # needs a gap on both sides
         # background: mean of the middle half of each neighbouring gap
         gl0 = seg_b[k - 1] + 1 if k > 0 else max(0, a - 24)
@@ -277,6 +284,7 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gr0 = b + 1
         gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
         if gl1 < gl0 or gr1 < gr0:
+            out[k, F_VALID] = BAND_OVERLAP
             continue
         # each gap serves two bands: measure it once
         if not gap_done[k]:
@@ -295,6 +303,7 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
                 top = v
                 jm = i
         bg = 0.5 * (bl + br)
+        out[k, F_VALID] = BAND_FAINT  # until it is measured
         if top - bg < min_contrast:
             continue
         level1 = bg + 0.5 * (top - bg)
@@ -347,30 +356,34 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_END] = xr
         out[k, F_HEIGHT] = height
         out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
+        # the first failed check names the reason (BAND_*)
         # equal ramps: a band cut by an edge has one sharp side
-        ok = abs(ramp_l - ramp_r) <= sym_tol + 0.3 * max(ramp_l, ramp_r)
+        code = BAND_VALID
+        if abs(ramp_l - ramp_r) > sym_tol + 0.3 * max(ramp_l, ramp_r):
+            code = BAND_CUT
         # the gaps must reach the floor: between touching bands the "gap" is two ramps
         # and its level is well above the lowest level around
-        if bg - thr[1, jm] > 0.25 * height:
-            ok = False
+        if code > 0 and bg - thr[1, jm] > 0.25 * height:
+            code = BAND_OVERLAP
         # ... and a V-shaped gap (two ramps meeting) is lower in its middle than around
-        if max(vl, vr) > 0.12 * height:
-            ok = False
+        if code > 0 and max(vl, vr) > 0.12 * height:
+            code = BAND_OVERLAP
         # a swept line leaves a plateau without dips; print or an edge inside the band does
         i0 = int(np.ceil(xl + 0.5 * ramp_l))
         i1 = int(np.floor(xr - 0.5 * ramp_r))
-        for i in range(i0, i1 + 1):
-            if x[i] < bg + 0.6 * height:
-                ok = False
-                break
+        if code > 0:
+            for i in range(i0, i1 + 1):
+                if x[i] < bg + 0.6 * height:
+                    code = BAND_IRREGULAR
+                    break
         # a band running into the image border may be cut: it must visibly end before it
         margin = 2.0 * max(ramp_l, ramp_r) + 4.0
         if x20l - margin < 0 or x20r + margin > n - 1:
             out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
-            ok = False
+            code = BAND_CUT
         # support of the band (ramp extrapolated to zero) must leave a flat gap
         out[k, F_INTERVAL] = (ramp_l + ramp_r) / 0.6  # temporarily: full ramp length
-        out[k, F_VALID] = 1.0 if ok else 0.0
+        out[k, F_VALID] = code
     # intervals from neighbour centres; consistency and gap checks
     for k in range(ns):
         ramp = out[k, F_INTERVAL]
@@ -378,8 +391,10 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         c0 = out[k, F_CENTRE]
         cp = out[k - 1, F_CENTRE] if k > 0 else np.nan
         cn = out[k + 1, F_CENTRE] if k < ns - 1 else np.nan
+        valid = out[k, F_VALID] > 0.0
         if not np.isfinite(c0) or not (np.isfinite(cp) or np.isfinite(cn)):
-            out[k, F_VALID] = 0.0
+            if valid:
+                out[k, F_VALID] = BAND_IRREGULAR  # no neighbour to measure an interval
             continue
         if not (np.isfinite(cp) and np.isfinite(cn)):
             # outermost band of a run: one-sided interval, checked against the next one
@@ -389,38 +404,42 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             d1 = abs(c1 - c0)
             d2 = abs(c2 - c1) if np.isfinite(c2) else np.nan
             if not (d2 > 2.0 and d1 > 2.0):  # merged bands can share a centre
-                out[k, F_VALID] = 0.0
+                if valid:
+                    out[k, F_VALID] = BAND_OVERLAP
                 continue
             # the missing spacing extrapolated linearly; the interval is the mean of both
             interval = 1.5 * d1 - 0.5 * d2
             out[k, F_INTERVAL] = interval
-            if out[k, F_VALID] == 0.0 or abs(d1 - d2) > itol * interval:
-                out[k, F_VALID] = 0.0
+            if not valid:
+                continue
+            if abs(d1 - d2) > itol * interval:
+                out[k, F_VALID] = BAND_IRREGULAR
                 continue
             if out[k, F_LENGTH] + ramp > interval - min_gap:
-                out[k, F_VALID] = 0.0
+                out[k, F_VALID] = BAND_OVERLAP
             continue
         d1 = c0 - cp
         d2 = cn - c0
         interval = 0.5 * (d1 + d2)
         out[k, F_INTERVAL] = interval
         if not (d1 > 2.0 and d2 > 2.0):  # merged bands can share a centre
-            out[k, F_VALID] = 0.0
+            if valid:
+                out[k, F_VALID] = BAND_OVERLAP
             continue
-        if out[k, F_VALID] == 0.0:
+        if not valid:
             continue
         if abs(d1 - d2) > itol * interval:
-            out[k, F_VALID] = 0.0
+            out[k, F_VALID] = BAND_IRREGULAR
             continue
         support = out[k, F_LENGTH] + ramp
         if support > interval - min_gap:
-            out[k, F_VALID] = 0.0
+            out[k, F_VALID] = BAND_OVERLAP
             continue
         hp = out[k - 1, F_HEIGHT]
         hn = out[k + 1, F_HEIGHT]
         h0 = out[k, F_HEIGHT]
         if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
-            out[k, F_VALID] = 0.0
+            out[k, F_VALID] = BAND_IRREGULAR
     return ns
 
 
