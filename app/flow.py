@@ -492,13 +492,17 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
     weight around them is valid (holes inside a surface are filled; the
     surface does not grow past its edges).
     """
-    mask = np.isfinite(values)
     if sigma <= 0:
         return values
-    m = mask.astype(np.float32)
-    v = np.where(mask, values, 0).astype(np.float32)
+    return _masked_smooth(values.astype(np.float32, copy=False), np.isfinite(values), sigma,
+                          fill_fraction)  # fmt: skip
+
+
+def _masked_smooth(values, mask, sigma, fill_fraction):
+    # values: float32, mask: where they are finite (NaN elsewhere)
+    v = np.where(mask, values, np.float32(0.0))
     num = _gauss(v, sigma)
-    den = _gauss(m, sigma)
+    den = _gauss(mask.astype(np.float32), sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
     fill = den >= fill_fraction
@@ -508,13 +512,14 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
         # a third of the kernel is valid too, and filling there grew the object.
         # More than half the kernel valid is inside a straight edge, never beyond it.
         fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
-    out[~(mask | fill)] = np.nan
+    fill |= mask
+    np.copyto(out, np.float32(np.nan), where=~fill)
     return out
 
 
 def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
     """Pixels with a ``mask`` pixel within ``r`` on both sides along a row or a column."""
-    m = mask.astype(np.uint8)
+    m = mask.view(np.uint8)  # 0 or 1
     row = np.ones((1, r + 1), np.uint8)
     col = np.ones((r + 1, 1), np.uint8)
     # one-sided dilations: the anchor at one end of the kernel looks only one way
@@ -522,7 +527,10 @@ def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
     right = cv2.dilate(m, row, anchor=(0, 0))
     up = cv2.dilate(m, col, anchor=(0, r))
     down = cv2.dilate(m, col, anchor=(0, 0))
-    return ((left & right) | (up & down)).astype(bool)
+    left &= right
+    up &= down
+    left |= up
+    return left.view(bool)
 
 
 def smooth_log_ratio(
@@ -534,9 +542,10 @@ def smooth_log_ratio(
     if not outlier_sigmas > 0:
         return masked_smooth(log_ratio, sigma, fill_fraction)
     # a rough local mean is enough to spot outliers: a box filter costs less
+    log_ratio = log_ratio.astype(np.float32, copy=False)
     mask = np.isfinite(log_ratio)
     k = 2 * int(round(sigma)) + 1
-    num = cv2.blur(np.where(mask, log_ratio, 0).astype(np.float32), (k, k))
+    num = cv2.blur(np.where(mask, log_ratio, np.float32(0.0)), (k, k))
     den = cv2.blur(mask.astype(np.float32), (k, k))
     with np.errstate(invalid="ignore", divide="ignore"):
         first = num / den
@@ -546,7 +555,7 @@ def smooth_log_ratio(
     if finite.size < 16:
         return first
     mad = float(np.median(finite)) * 1.4826 + 1e-6
-    cleaned = np.where(resid <= outlier_sigmas * mad, log_ratio, np.nan)
-    out = masked_smooth(cleaned, sigma, fill_fraction)
+    # a NaN residual (no data, or none around) compares false: those are the NaN pixels
+    keep = resid <= outlier_sigmas * mad
     # outliers are replaced by their neighbourhood, pixels without data only inside
-    return out
+    return _masked_smooth(log_ratio, keep, sigma, fill_fraction)
