@@ -7,8 +7,10 @@ attaches the ground truth of each frame as ``frame.extras["truth"]``.
 
 from __future__ import annotations
 
+import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -59,6 +61,31 @@ def _undistorted_rays(K, dist, width, height):
     xy = cv2.undistortPointsIter(pix, K, np.asarray(dist, np.float64), None, None, crit)
     xy = xy.reshape(height, width, 2)
     return np.concatenate([xy, np.ones((height, width, 1))], axis=2)
+
+
+def render_threads() -> int:
+    """Threads the renderer uses: one per core this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def run_row_bands(task: Callable[[int, int], None], height: int, band_rows: int) -> None:
+    """Call ``task(lo, hi)`` for bands of at most ``band_rows`` image rows, on all cores.
+
+    The renderer's kernels release the GIL, so threads render bands side by
+    side; the bands write disjoint rows.  An exception in any band is raised here.
+    """
+    bands = [(lo, min(lo + band_rows, height)) for lo in range(0, height, band_rows)]
+    threads = min(render_threads(), len(bands))
+    if threads <= 1:
+        for lo, hi in bands:
+            task(lo, hi)
+        return
+    with ThreadPoolExecutor(threads, thread_name_prefix="render") as pool:
+        for future in [pool.submit(task, lo, hi) for lo, hi in bands]:
+            future.result()
 
 
 def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
@@ -247,8 +274,8 @@ class SceneRenderer:
         #: fraction of pixels the last :meth:`radiance` sampled by Monte Carlo
         self.last_mc_fraction = 0.0
 
-    #: image rows per band of the fast form (bounds the memory of the knot states)
-    BAND_ROWS = 96
+    #: image rows per band (a task of one thread; bounds the memory of the knot states)
+    BAND_ROWS = 32
 
     def radiance(self, t0: float, exposure_s: float, exact: bool = False) -> np.ndarray:
         """Noise-free mean image (float DN) of the exposure starting at ``t0``.
@@ -272,33 +299,34 @@ class SceneRenderer:
         defocus = np.full(len(self.rig.projectors), s.projector_defocus_px)
         crosstalk = np.array(s.crosstalk)
         ambient = np.full(3, s.ambient_dn * gain)
+        shared = (
+            self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+            self.proj_centre, self.proj_size, power, self.pat_proj, self.pat_channel,
+            self.pat_foot, self.pat_nfoot, defocus, crosstalk, ambient, t0, exposure_s,
+            s.samples, self.offsets,
+        )  # fmt: skip
         if exact:
-            render_exposure(
-                self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-                self.proj_centre, self.proj_size, power, self.pat_proj,
-                self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
-                ambient, t0, exposure_s, s.samples, self.offsets, out,
-            )  # fmt: skip
+
+            def band(lo: int, hi: int) -> None:
+                render_exposure(*shared, lo, hi, out)
+
+            run_row_bands(band, cam.height, self.BAND_ROWS)
             self.last_mc_fraction = 1.0
         else:
             times = t0 + exposure_s * np.linspace(0.0, 1.0, KNOTS)
             n_fields = 2 + 2 * len(self.rig.projectors)
             mc = np.zeros(cam.height, dtype=np.int64)
-            for lo in range(0, cam.height, self.BAND_ROWS):
-                hi = min(lo + self.BAND_ROWS, cam.height)
+
+            def band(lo: int, hi: int) -> None:
                 # one row of halo each side: smoothness looks at the 3x3 neighbours
                 states = np.zeros((hi - lo + 2, cam.width, KNOTS, n_fields))
                 knot_states(
                     self.rays, prims, self.texture, self.projs, self.proj_centre,
                     self.proj_size, power, times, lo - 1, states,
                 )  # fmt: skip
-                render_exposure_fast(
-                    self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-                    self.proj_centre, self.proj_size, power, self.pat_proj,
-                    self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
-                    ambient, t0, exposure_s, s.samples, self.offsets, states, lo - 1,
-                    lo, hi, out, mc,
-                )  # fmt: skip
+                render_exposure_fast(*shared, states, lo - 1, lo, hi, out, mc)
+
+            run_row_bands(band, cam.height, self.BAND_ROWS)
             self.last_mc_fraction = float(mc.sum()) / (cam.width * cam.height)
         return lens_blur(out, s.lens_psf, s.lens_blur_px)
 
@@ -318,10 +346,15 @@ class SceneRenderer:
         depth = np.empty((cam.height, cam.width))
         obj = np.empty((cam.height, cam.width), dtype=np.uint8)
         lit = np.empty((cam.height, cam.width), dtype=np.uint8)
-        render_truth(
-            self.rays, self.scene.primitives(t), self.texture, self.projs, self.proj_centre,
-            self.proj_size, t, depth, obj, lit,
-        )  # fmt: skip
+        prims = self.scene.primitives(t)
+
+        def band(lo: int, hi: int) -> None:
+            render_truth(
+                self.rays, prims, self.texture, self.projs, self.proj_centre, self.proj_size,
+                t, lo, hi, depth, obj, lit,
+            )  # fmt: skip
+
+        run_row_bands(band, cam.height, 4 * self.BAND_ROWS)
         return GroundTruth(depth.astype(np.float32), obj, lit, self.scene.planar)
 
 
