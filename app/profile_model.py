@@ -18,6 +18,8 @@ Everything is in units of sigma, so one table serves every rig.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import inspect
 import math
@@ -353,6 +355,34 @@ def _trilinear(table, ax0, step1, step2, x0, x1, x2, out):
         res[k] = trilinear_at(table, ax0[0], ax0[1] - ax0[0], step1, step2, f0[k], f1[k], f2[k])
 
 
+def tables_path():
+    """Where the profile tables are cached (``pathlib.Path``): keyed by the detector's source."""
+    from .depth_model import lut_cache_dir  # the same cache folder as the LUTs
+
+    digest = hashlib.sha256(
+        inspect.getsource(_bands_module).encode()
+        + inspect.getsource(sys.modules[__name__]).encode()
+    ).hexdigest()[:12]
+    return lut_cache_dir() / f"profile-tables-{digest}.npz"
+
+
+@contextlib.contextmanager
+def _build_lock(path):
+    """An exclusive lock beside ``path`` (none when the folder is not writable)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path.with_name(path.name + ".lock"), "a")  # noqa: SIM115
+    except OSError:
+        yield
+        return
+    with handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def _on_threads(kernel, cells: int, *args) -> None:
     """Run ``kernel(*args, lo, hi)`` over cells ``0 .. cells`` in chunks, on a thread per core."""
     from concurrent.futures import ThreadPoolExecutor
@@ -375,21 +405,26 @@ class ProfileTables:
     """
 
     def __init__(self):
-        from .depth_model import lut_cache_dir  # the same cache folder as the LUTs
+        path = tables_path()
+        if self._load(path):
+            return
+        # one process builds, the others wait for its file (a demo builds them
+        # in a helper process while it compiles the renderer)
+        with _build_lock(path):
+            if self._load(path):
+                return
+            self._build(path)
 
-        # the tables model the detector's code: key them by its source
-        digest = hashlib.sha256(
-            inspect.getsource(_bands_module).encode()
-            + inspect.getsource(sys.modules[__name__]).encode()
-        ).hexdigest()[:12]
-        path = lut_cache_dir() / f"profile-tables-{digest}.npz"
+    def _load(self, path) -> bool:
         try:
             with np.load(path) as d:
                 self.m, self.r, self.inverse = d["m"], d["r"], d["inverse"]
                 self.joint = d["joint"]
-            return
+            return True
         except (OSError, KeyError, ValueError):
-            pass
+            return False
+
+    def _build(self, path) -> None:
         shape = (len(S_AXIS), len(W_AXIS), len(L_AXIS))
         self.m = np.empty(shape)
         self.r = np.empty(shape)

@@ -134,27 +134,93 @@ def open_viewer_or_file(rig, out: Path, want_viewer: bool, save: bool = True):
     return RerunSink(rig, "rrd", path=path, compress=True), False
 
 
-def warm_up_renderer(rig, scene: str) -> float:
-    """Compile (or load from the cache) the renderer's kernels on a tiny image; seconds taken."""
-    from lightflow.drivers.synthetic import SceneRenderer
+class CompileProgress:
+    """Says which numba kernel is being compiled, and for how long, while a block runs.
 
-    t0 = time.perf_counter()
-    tiny = rig.scaled(32 / rig.camera.width)
-    renderer = SceneRenderer(tiny, get_scene_checked(scene))
-    renderer.radiance(0.0, renderer.scene.exposure_s)
-    renderer.truth(0.0)
-    return time.perf_counter() - t0
+    On a terminal one line is rewritten in place twice a second; otherwise only
+    the summary is printed.  Uses numba's event API (``numba:compile`` events).
+    """
+
+    def __init__(self, label: str, stream=None):
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        try:
+            self.tty = self.stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+        self.kernels = 0
+        self.current = ""
+        self._depth = 0
+        self._done = threading.Event()
+        self._listener = None
+
+    def _on_start(self, event) -> None:
+        self._depth += 1
+        if self._depth == 1:
+            self.kernels += 1
+            self.current = event.data["dispatcher"].py_func.__name__
+
+    def _on_end(self, event) -> None:
+        self._depth -= 1
+
+    def _tick(self) -> None:
+        # a display refresh, not a poll: the wait ends at once when the block does
+        while not self._done.wait(0.5):
+            if self.current:
+                elapsed = time.perf_counter() - self.t0
+                self.stream.write(f"\r{self.label}: compiling {self.current:<24s} "
+                                  f"(kernel {self.kernels}, {elapsed:5.1f} s)")  # fmt: skip
+                self.stream.flush()
+
+    def __enter__(self) -> CompileProgress:
+        from numba.core import event
+
+        owner = self
+
+        class Listener(event.Listener):
+            def on_start(self, ev) -> None:
+                owner._on_start(ev)
+
+            def on_end(self, ev) -> None:
+                owner._on_end(ev)
+
+        self._listener = Listener()
+        event.register("numba:compile", self._listener)
+        self.t0 = time.perf_counter()
+        if self.tty:
+            self._ticker = threading.Thread(target=self._tick, daemon=True)
+            self._ticker.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        from numba.core import event
+
+        self._done.set()
+        if self.tty:
+            self._ticker.join()
+            self.stream.write("\r" + " " * 78 + "\r")
+        event.unregister("numba:compile", self._listener)
+        self.seconds = time.perf_counter() - self.t0
+
+    def summary(self) -> str:
+        if not self.kernels:
+            return "kernels loaded from numba's cache"
+        return f"compiled {self.kernels} kernels (numba; cached for the next runs)"
 
 
-def renderer_cached() -> bool:
-    """Whether numba's on-disk cache already holds the renderer's main kernel."""
-    from lightflow.drivers import render
+def render_ahead(camera, done: threading.Event, failed: list) -> None:
+    """Render frames ahead on one thread until ``done`` is set or the scene ends.
 
-    pattern = "render.render_exposure_fast-*.nbi"
-    root = os.environ.get("NUMBA_CACHE_DIR")
-    if root:
-        return any(Path(root).rglob(pattern))
-    return any((Path(render.__file__).parent / "__pycache__").glob(pattern))
+    An exception is appended to ``failed`` for the caller to raise.  The
+    thread runs at the lowest priority: it uses a core that compilation leaves
+    idle and must not slow the compilation down.
+    """
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)  # this thread only
+        while not done.is_set() and camera.render_ahead(1, threads=1):
+            pass
+    except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+        failed.append(exc)
 
 
 def get_scene_checked(name: str):
@@ -165,14 +231,21 @@ def get_scene_checked(name: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    from lightflow.app.depth_model import load_or_build_lut
+    from lightflow.app.pipeline import DepthPipeline
+    from lightflow.app.profile_model import tables_path
     from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
-    from lightflow.app.status import StatusLine
+    from lightflow.app.status import Progress, StatusLine
     from lightflow.drivers.synthetic import SyntheticCamera
 
-    from .replay import close_all, make_pipeline
+    from .replay import close_all, pipeline_config
 
     start = time.perf_counter()
+
+    def since() -> str:
+        return f"{time.perf_counter() - start:.1f} s"
+
     if args.frames <= 0:
         raise ConfigError(f"--frames: expected a positive number, got {args.frames}")
     if not 0.05 <= args.scale <= 2:
@@ -185,54 +258,76 @@ def run(args: argparse.Namespace) -> int:
     if args.scale != 1:
         rig = rig.scaled(args.scale)
     cam = rig.camera
+    config = pipeline_config(args)
     print(f"demo: scene {scene.name} ({scene.description}), {cam.width}x{cam.height} camera"
           f"{f' (--scale {args.scale:g})' if args.scale != 1 else ''}, "
           f"{len(rig.projectors)} projector(s), {args.frames} frames at {args.fps:g} fps "
           f"({args.frames / args.fps:.1f} s of motion)", flush=True)
-    # numba compiles on one core: on a first run the renderer's kernels compile
-    # in a helper process (into numba's on-disk cache) while this one builds
-    # the pipeline; later runs load them (a helper would only cost its start-up)
+    # A first run on a machine builds tables and compiles kernels (numba, one
+    # core each): the profile tables build in a helper process while this one
+    # builds the depth table and compiles the renderer; all of it is cached.
     helper = None
-    if renderer_cached():
-        print("[1/3] renderer: compiled kernels found in numba's cache", flush=True)
+    if tables_path().exists():
+        print("[1/4] band profile tables: found in the cache", flush=True)
     else:
-        print("[1/3] compiling the renderer in a helper process (numba; the first run only, "
-              "cached afterwards) ...", flush=True)
-        helper = subprocess.Popen(
-            [sys.executable, "-c", "from lightflow.app.commands.demo import warm_up_renderer "
-             "as w; from lightflow.app.rig import resolve_rig as r; import sys; "
-             "w(r(sys.argv[1]), sys.argv[2])", str(args.rig), scene.name],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
-    try:
-        print("[2/3] the depth pipeline: depth table and kernels (the first run "
-              "builds and caches them)", flush=True)
-        pipeline = make_pipeline(rig, args)
-        print("      warming up (compiling kernels, loading the depth and blur tables) ...",
+        print("[1/4] band profile tables (what the band detector reports for every sweep, line "
+              "width and blur; once per machine): building them in a helper process ...",
               flush=True)
-        print(f"      warmed up in {pipeline.warm_up():.1f} s", flush=True)
-        if helper is not None:
-            helper.wait()
+        helper = subprocess.Popen(
+            [sys.executable, "-c", "from lightflow.app.profile_model import tables; tables()"],
+            stdout=subprocess.DEVNULL,
+        )  # fmt: skip
+    camera = None
+    try:
+        print("[2/4] depth table of this rig (once per rig) ...", flush=True)
+        lut = load_or_build_lut(rig, config.stride, config.depth_range,
+                                Progress("      building the depth table"))  # fmt: skip
+        print(f"      ready after {since()}", flush=True)
+        print("[3/4] renderer: its kernels and the first frame ...", flush=True)
+        camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
+        with CompileProgress("      renderer") as compiling:
+            camera.render_ahead(1)
+        print(f"      {compiling.summary()}; frame 1 rendered after {since()}", flush=True)
+        print("[4/4] depth pipeline: " + ("waiting for the profile tables, then " if helper
+              else "") + "its kernels, on a test image ...", flush=True)  # fmt: skip
+        with CompileProgress("      pipeline") as compiling:
+            pipeline = DepthPipeline(rig, config, lut=lut)  # waits for the helper's tables
+            if helper is not None:
+                helper.wait()
+                print(f"      profile tables ready after {since()}", flush=True)
+            # compiling takes one core: the other renders the next frames meanwhile
+            done = threading.Event()
+            failed: list[BaseException] = []
+            ahead = threading.Thread(target=render_ahead, args=(camera, done, failed),
+                                     name="render-ahead")  # fmt: skip
+            ahead.start()
+            try:
+                pipeline.warm_up()
+            finally:
+                done.set()
+                ahead.join()
+            if failed:
+                raise failed[0]
+        print(f"      {compiling.summary()}; ready after {since()} "
+              f"({camera.frames_ahead} frames rendered)", flush=True)
+    except BaseException:
+        if camera is not None:
+            camera.close()
+        raise
     finally:
         if helper is not None and helper.poll() is None:
             helper.kill()
             helper.wait()
-    # loads what the helper compiled (or compiles here if the helper failed)
-    took = warm_up_renderer(rig, scene.name)
-    print(f"      renderer ready ({took:.1f} s in this process) after "
-          f"{time.perf_counter() - start:.1f} s", flush=True)
     out = Path(args.out)
-    rerun_sink, spawned = open_viewer_or_file(rig, out, not args.no_viewer, not args.no_save)
+    try:
+        rerun_sink, spawned = open_viewer_or_file(rig, out, not args.no_viewer, not args.no_save)
+    except BaseException:
+        camera.close()
+        raise
     accuracy = AccuracySink(len(rig.projectors))
     sinks = [rerun_sink, accuracy]
-    try:
-        camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
-    except BaseException:
-        close_all(sinks)
-        raise
-    print(f"[3/3] streaming after {time.perf_counter() - start:.1f} s: each frame is rendered "
-          "with motion blur, then reconstructed and logged while the next ones render",
-          flush=True)
+    print(f"streaming after {since()}: each frame is rendered with motion blur, then "
+          "reconstructed and logged while the next ones render", flush=True)
     first = {}
 
     class FirstDepth:
@@ -248,7 +343,12 @@ def run(args: argparse.Namespace) -> int:
 
     sinks.append(FirstDepth())
     status = StatusLine(total=args.frames)
-    runner = Runner(camera, pipeline, sinks, on_stats=status, lossless=True)
+    try:
+        runner = Runner(camera, pipeline, sinks, on_stats=status, lossless=True)
+    except BaseException:
+        close_all(sinks)
+        camera.close()
+        raise
     with camera:
         stats = runner.run(threading.Event())
     status.finish(stats)
