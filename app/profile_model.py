@@ -25,6 +25,7 @@ import inspect
 import math
 import os
 import sys
+import threading
 
 import numba as nb
 import numpy as np
@@ -404,41 +405,70 @@ class ProfileTables:
     effects are part of the model.  Cached on disk (a few seconds to build).
     """
 
-    def __init__(self):
-        path = tables_path()
-        if self._load(path):
-            return
-        # one process builds, the others wait for its file (a demo builds them
-        # in a helper process while it compiles the renderer)
-        with _build_lock(path):
+    def __init__(self, background: bool = False):
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        if background:
+            # a daemon: a process that ends early must not wait for a build
+            threading.Thread(target=self._prepare, name="profile-tables", daemon=True).start()
+        else:
+            self._prepare()
+            self._wait()
+
+    def _prepare(self) -> None:
+        try:
+            path = tables_path()
             if self._load(path):
                 return
-            self._build(path)
+            # one process builds, the others wait for its file (a demo builds
+            # them in a helper process while it compiles the pipeline)
+            with _build_lock(path):
+                if not self._load(path):
+                    self._build(path)
+        except BaseException as exc:  # noqa: BLE001 - raised where the tables are used
+            self._error = exc
+        finally:
+            self._ready.set()
+
+    def _wait(self) -> None:
+        self._ready.wait()
+        if self._error is not None:
+            raise self._error
+
+    # the arrays wait for a background load (see prefetch_tables)
+    m = property(lambda self: self._array("_m"), doc="m(sigma, w, L): measured width.")
+    r = property(lambda self: self._array("_r"), doc="r(sigma, w, L): measured ramp.")
+    inverse = property(lambda self: self._array("_inverse"), doc="L(sigma, w, m).")
+    joint = property(lambda self: self._array("_joint"), doc="L(sigma, w, m, r) (float32).")
+
+    def _array(self, name: str) -> np.ndarray:
+        self._wait()
+        return getattr(self, name)
 
     def _load(self, path) -> bool:
         try:
             with np.load(path) as d:
-                self.m, self.r, self.inverse = d["m"], d["r"], d["inverse"]
-                self.joint = d["joint"]
+                self._m, self._r, self._inverse = d["m"], d["r"], d["inverse"]
+                self._joint = d["joint"]
             return True
         except (OSError, KeyError, ValueError):
             return False
 
     def _build(self, path) -> None:
         shape = (len(S_AXIS), len(W_AXIS), len(L_AXIS))
-        self.m = np.empty(shape)
-        self.r = np.empty(shape)
+        m = np.empty(shape)
+        r = np.empty(shape)
         cells = len(S_AXIS) * len(W_AXIS)
-        _on_threads(_measure_table, cells, S_AXIS, W_AXIS, L_AXIS, self.m, self.r)
-        self.inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
-        _on_threads(_invert_table, cells, self.m, L_AXIS, M_AXIS, self.inverse)
-        self.joint = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS), len(R_AXIS)), np.float32)
-        _on_threads(_joint_table, cells, self.m, self.r, L_AXIS, M_AXIS, R_AXIS, RAMP_NOISE,
-                    L_MIN, self.joint)  # fmt: skip
+        _on_threads(_measure_table, cells, S_AXIS, W_AXIS, L_AXIS, m, r)
+        inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
+        _on_threads(_invert_table, cells, m, L_AXIS, M_AXIS, inverse)
+        joint = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS), len(R_AXIS)), np.float32)
+        _on_threads(_joint_table, cells, m, r, L_AXIS, M_AXIS, R_AXIS, RAMP_NOISE, L_MIN, joint)
+        self._m, self._r, self._inverse, self._joint = m, r, inverse, joint
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse, joint=self.joint)
+            np.savez(tmp, m=m, r=r, inverse=inverse, joint=joint)
             tmp.replace(path)
         except OSError:
             pass  # an unwritable cache only costs the rebuild
@@ -486,6 +516,18 @@ def tables() -> ProfileTables:
     if _TABLES is None:
         _TABLES = ProfileTables()
     return _TABLES
+
+
+def prefetch_tables() -> None:
+    """Load (or build) the shared tables on a background thread from now on.
+
+    :func:`tables` then returns at once, and the first use of their arrays
+    waits for them, so that a pipeline can compile its band kernels meanwhile
+    (``lightflow demo`` builds the tables in a helper process).
+    """
+    global _TABLES
+    if _TABLES is None:
+        _TABLES = ProfileTables(background=True)
 
 
 def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: int = 120):

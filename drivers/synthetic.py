@@ -363,6 +363,20 @@ class SceneRenderer:
         return GroundTruth(depth.astype(np.float32), obj, lit, self.scene.planar)
 
 
+def warm_up_renderer(rig: Rig, scene: str) -> float:
+    """Compile (or load from numba's cache) the renderer's kernels on a tiny image; seconds.
+
+    The kernels depend on the argument types only, so any rig and scene will do.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    renderer = SceneRenderer(rig.scaled(32 / rig.camera.width), get_scene(scene))
+    renderer.radiance(0.0, renderer.scene.exposure_s)
+    renderer.truth(0.0)
+    return time.perf_counter() - t0
+
+
 class SyntheticCamera(Camera):
     """A camera that renders a built-in scene (``synthetic:SCENE``).
 

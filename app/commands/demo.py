@@ -30,13 +30,16 @@ With a display the results open in a Rerun viewer; the run is always kept in
 OUT/demo.rrd as well (open it later with `rerun OUT/demo.rrd`) unless
 --no-save.  The default is 800x600 (--scale 0.5) to keep the demo short.
 
-Measured with the defaults on 2 cores shared with other work (load 10-13):
-warm caches, first depth picture after 8.5 s and the whole demo in 69 s
-(37 s of CPU); the first run also compiles the renderer (42 s, now in a
-helper process alongside the pipeline), builds the depth table (about 70 s)
-and compiles the pipeline (50 s), all cached afterwards.  Rendering is the
-bound (about 2 s a frame at 800x600 under that load).  Progress is printed
-at each stage."""
+The first run on a machine also builds the band profile tables (in a helper
+process), the rig's depth table, and compiles the renderer's and the
+pipeline's kernels (numba); all of it is cached (under $XDG_CACHE_HOME/lightflow)
+and each step says what it is doing.  Measured with the defaults on this
+2-core machine while other jobs kept its load average at 5-7: first depth
+picture after 9 s with warm caches and 55-67 s from empty caches (about 40 s
+of CPU time; on two idle cores that is about 20-25 s); the whole demo 90-125 s
+(about 90 s of CPU time), bound by rendering (1-2 s a frame under that load).
+The renderer's compilation and the profile tables now take seconds instead
+of about 45 s; most of a first run's wait is compiling the pipeline."""
 
 EPILOG = """\
 scenes: ball-wall, board, textured-board, tilted-board, ball, fan, two-balls, and the
@@ -208,19 +211,58 @@ class CompileProgress:
         return f"compiled {self.kernels} kernels (numba; cached for the next runs)"
 
 
-def render_ahead(camera, done: threading.Event, failed: list) -> None:
-    """Render frames ahead on one thread until ``done`` is set or the scene ends.
+def cpu_seconds() -> float:
+    """CPU time of this process and its finished helpers (user + system), in seconds."""
+    import resource
 
-    An exception is appended to ``failed`` for the caller to raise.  The
-    thread runs at the lowest priority: it uses a core that compilation leaves
-    idle and must not slow the compilation down.
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    helpers = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + helpers.ru_utime + helpers.ru_stime
+
+
+def render_ahead(camera, helper, done: threading.Event, failed: list, since) -> None:
+    """Render frames ahead on one idle-priority thread until ``done`` is set or the scene ends.
+
+    Waits for the helper process first (it compiles the renderer's kernels
+    into numba's cache, and this process is busy compiling the pipeline's).
+    The thread runs at the lowest priority: it uses a core that compilation
+    leaves idle and must not slow the compilation down.  An exception is
+    appended to ``failed`` for the caller to raise.
     """
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)  # this thread only
+        if helper is not None:
+            helper.wait()
+            if helper.returncode != 0:
+                return  # the main thread compiles the renderer after the pipeline
+            print(f"\n      helper: profile tables and renderer kernels ready after {since()}",
+                  flush=True)  # fmt: skip
         while not done.is_set() and camera.render_ahead(1, threads=1):
             pass
     except BaseException as exc:  # noqa: BLE001 - handed to the main thread
         failed.append(exc)
+
+
+def renderer_cached() -> bool:
+    """Whether numba's on-disk cache holds the renderer's main kernel."""
+    from lightflow.drivers import render
+
+    pattern = "render.render_exposure_fast-*.nbi"
+    root = os.environ.get("NUMBA_CACHE_DIR")
+    if root:
+        return any(Path(root).rglob(pattern))
+    return any((Path(render.__file__).parent / "__pycache__").glob(pattern))
+
+
+#: the helper process: profile tables, then the renderer's kernels (argv: rig, scene)
+HELPER = (
+    "import sys\n"
+    "from lightflow.app.profile_model import tables\n"
+    "from lightflow.app.rig import resolve_rig\n"
+    "from lightflow.drivers.synthetic import warm_up_renderer\n"
+    "tables()\n"
+    "warm_up_renderer(resolve_rig(sys.argv[1]), sys.argv[2])\n"
+)
 
 
 def get_scene_checked(name: str):
@@ -233,7 +275,7 @@ def get_scene_checked(name: str):
 def run(args: argparse.Namespace) -> int:
     from lightflow.app.depth_model import load_or_build_lut
     from lightflow.app.pipeline import DepthPipeline
-    from lightflow.app.profile_model import tables_path
+    from lightflow.app.profile_model import prefetch_tables, tables_path
     from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
     from lightflow.app.status import Progress, StatusLine
@@ -264,55 +306,55 @@ def run(args: argparse.Namespace) -> int:
           f"{len(rig.projectors)} projector(s), {args.frames} frames at {args.fps:g} fps "
           f"({args.frames / args.fps:.1f} s of motion)", flush=True)
     # A first run on a machine builds tables and compiles kernels (numba, one
-    # core each): the profile tables build in a helper process while this one
-    # builds the depth table and compiles the renderer; all of it is cached.
+    # core each), all cached.  The pipeline's kernels take longest: this process
+    # compiles them at once, while a helper process builds the profile tables
+    # (which the pipeline needs only half-way through) and then compiles the
+    # renderer; frames are rendered ahead on the core left idle.
     helper = None
-    if tables_path().exists():
-        print("[1/4] band profile tables: found in the cache", flush=True)
+    if tables_path().exists() and renderer_cached():
+        print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
     else:
-        print("[1/4] band profile tables (what the band detector reports for every sweep, line "
-              "width and blur; once per machine): building them in a helper process ...",
-              flush=True)
+        print("[1/4] helper process: the band profile tables (what the band detector reports "
+              "for every sweep, line width and blur), then the renderer's kernels; once per "
+              "machine ...", flush=True)  # fmt: skip
         helper = subprocess.Popen(
-            [sys.executable, "-c", "from lightflow.app.profile_model import tables; tables()"],
+            [sys.executable, "-c", HELPER, str(args.rig), scene.name],
             stdout=subprocess.DEVNULL,
         )  # fmt: skip
-    camera = None
+    camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
+    done = threading.Event()
+    failed: list[BaseException] = []
+    ahead = threading.Thread(target=render_ahead, args=(camera, helper, done, failed, since),
+                             name="render-ahead")  # fmt: skip
     try:
         print("[2/4] depth table of this rig (once per rig) ...", flush=True)
         lut = load_or_build_lut(rig, config.stride, config.depth_range,
                                 Progress("      building the depth table"))  # fmt: skip
         print(f"      ready after {since()}", flush=True)
-        print("[3/4] renderer: its kernels and the first frame ...", flush=True)
-        camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
-        with CompileProgress("      renderer") as compiling:
-            camera.render_ahead(1)
-        print(f"      {compiling.summary()}; frame 1 rendered after {since()}", flush=True)
-        print("[4/4] depth pipeline: " + ("waiting for the profile tables, then " if helper
-              else "") + "its kernels, on a test image ...", flush=True)  # fmt: skip
+        print("[3/4] depth pipeline: its kernels, on a test image"
+              + (" (it waits for the profile tables half-way)" if helper else "") + " ...",
+              flush=True)  # fmt: skip
+        prefetch_tables()  # the pipeline needs them only once its band kernels are compiled
+        ahead.start()
         with CompileProgress("      pipeline") as compiling:
-            pipeline = DepthPipeline(rig, config, lut=lut)  # waits for the helper's tables
-            if helper is not None:
-                helper.wait()
-                print(f"      profile tables ready after {since()}", flush=True)
-            # compiling takes one core: the other renders the next frames meanwhile
-            done = threading.Event()
-            failed: list[BaseException] = []
-            ahead = threading.Thread(target=render_ahead, args=(camera, done, failed),
-                                     name="render-ahead")  # fmt: skip
-            ahead.start()
             try:
+                pipeline = DepthPipeline(rig, config, lut=lut)
                 pipeline.warm_up()
             finally:
                 done.set()
                 ahead.join()
-            if failed:
-                raise failed[0]
-        print(f"      {compiling.summary()}; ready after {since()} "
-              f"({camera.frames_ahead} frames rendered)", flush=True)
+        if failed:
+            raise failed[0]
+        print(f"      {compiling.summary()}; ready after {since()}", flush=True)
+        n = camera.frames_ahead
+        print("[4/4] renderer: " + (f"{n} frame{'s' if n > 1 else ''} rendered meanwhile" if n
+              else "the first frame ..."), flush=True)  # fmt: skip
+        if not camera.frames_ahead:
+            with CompileProgress("      renderer") as compiling:
+                camera.render_ahead(1)
+            print(f"      {compiling.summary()}; frame 1 rendered after {since()}", flush=True)
     except BaseException:
-        if camera is not None:
-            camera.close()
+        camera.close()
         raise
     finally:
         if helper is not None and helper.poll() is None:
@@ -336,7 +378,8 @@ def run(args: argparse.Namespace) -> int:
         def write(self, result, stats) -> None:
             if "t" not in first:
                 first["t"] = time.perf_counter() - start
-                print(f"\nfirst depth picture after {first['t']:.1f} s", flush=True)
+                print(f"\nfirst depth picture after {first['t']:.1f} s ({cpu_seconds():.0f} s "
+                      "of CPU time, helper included)", flush=True)  # fmt: skip
 
         def close(self) -> None:
             """Nothing to flush."""
@@ -354,7 +397,8 @@ def run(args: argparse.Namespace) -> int:
     status.finish(stats)
     print(accuracy.describe())
     print(rerun_sink.describe())
-    print(f"demo took {time.perf_counter() - start:.1f} s")
+    print(f"demo took {time.perf_counter() - start:.1f} s ({cpu_seconds():.0f} s of CPU time; "
+          f"load average {os.getloadavg()[0]:.1f})")
     if not args.no_save:
         # the viewer comes with rerun-sdk, next to this interpreter (.venv/bin)
         viewer = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
