@@ -30,22 +30,22 @@ With a display the results open in a Rerun viewer; the run is always kept in
 OUT/demo.rrd as well (open it later with `rerun OUT/demo.rrd`) unless
 --no-save.  The default is 800x600 (--scale 0.5) to keep the demo short.
 
-The first run on a machine also builds the band profile tables (in a helper
-process), the rig's depth table, and compiles the renderer's and the
-pipeline's kernels (numba); all of it is cached (under $XDG_CACHE_HOME/lightflow)
-and each step says what it is doing.  Measured with the defaults on this
-2-core machine while other jobs kept its load average at 5-7: first depth
-picture after 9 s with warm caches and 55-67 s from empty caches (about 40 s
-of CPU time; on two idle cores that is about 20-25 s); the whole demo 90-125 s
-(about 90 s of CPU time), bound by rendering (1-2 s a frame under that load).
-The renderer's compilation and the profile tables now take seconds instead
-of about 45 s; most of a first run's wait is compiling the pipeline."""
+A first run on a machine also builds the band profile tables (in a helper
+process) and the rig's depth table, and compiles the pipeline's and the
+renderer's kernels (numba); all of it is cached under $XDG_CACHE_HOME/lightflow
+and each step says what it is doing.  Measured with the defaults on a shared
+2-core machine (load average 5-9 from other jobs): warm caches, first depth
+picture after 5.7 s and the whole demo in 76 s (59 s of CPU time); empty
+caches, first depth picture after 55-85 s (about 60 s of CPU time, half of it
+compiling the pipeline's kernels) and the whole demo in 125-170 s.  Rendering
+is the bound while streaming (1-2 s a frame at 800x600 under that load); the
+first and last lines give the times and the CPU time of the run."""
 
 EPILOG = """\
 scenes: ball-wall, board, textured-board, tilted-board, ball, fan, two-balls, and the
   paper's ball-away, ball-toward (5 ms), diagonal-board, newspaper-board (300 ms), fan-1ms
 examples:
-  lightflow demo                                    # ball in front of a wall, 45 frames
+  lightflow demo                                    # ball in front of a wall, 36 frames
   lightflow demo --scene fan --frames 30
   lightflow demo --scale 1 --frames 10 --out out/   # full 1600x1200, slower per frame"""
 
