@@ -33,6 +33,12 @@ F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLA
 N_FIELDS = 9
 #: fields interpolated onto the grid by :func:`rasterise_cells`
 GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP, F_SLANT)
+#: ``F_VALID`` of a band: 1 for a valid band, else why it was rejected (:mod:`.causes`)
+BAND_VALID = 1.0
+BAND_FAINT = -1.0  # too little contrast, or no clean half-height crossings
+BAND_CUT = -2.0  # one sharp side (an object edge) or running into the image border
+BAND_OVERLAP = -3.0  # no clean gap to a neighbour: bands merge
+BAND_IRREGULAR = -4.0  # dips inside (print, an edge), intervals or heights that disagree
 
 
 @dataclass(frozen=True)
@@ -64,10 +70,24 @@ class BandParams:
 
 
 @nb.njit(cache=True, inline="always")
-def _crossing_left(x, j, level):
-    # walk left from j (x[j] >= level) to the first sample below level
+def _walk_left(x, j, level):
+    # from j (x[j] >= level) left to the last sample at or above level
     while j > 0 and x[j - 1] >= level:
         j -= 1
+    return j
+
+
+@nb.njit(cache=True, inline="always")
+def _walk_right(x, j, level):
+    n = x.shape[0]
+    while j < n - 1 and x[j + 1] >= level:
+        j += 1
+    return j
+
+
+@nb.njit(cache=True, inline="always")
+def _at_left(x, j, level):
+    # the crossing below a walk's end j, linearly interpolated
     if j == 0:
         return -1.0
     a = x[j - 1]
@@ -78,10 +98,8 @@ def _crossing_left(x, j, level):
 
 
 @nb.njit(cache=True, inline="always")
-def _crossing_right(x, j, level):
+def _at_right(x, j, level):
     n = x.shape[0]
-    while j < n - 1 and x[j + 1] >= level:
-        j += 1
     if j == n - 1:
         return -1.0
     a = x[j]
@@ -97,36 +115,41 @@ def _sliding_mid(x, win, out):
 
     Only a segmentation level is needed, so it is computed on blocks of
     ``win // 8`` samples (block maxima and minima, then a sliding window over
-    blocks), which costs one pass over the row.
+    blocks), which costs one pass over the row.  The loops run across blocks
+    (one offset at a time) rather than along one block, so that neighbouring
+    maxima do not wait on each other: a running maximum is a chain of
+    dependent instructions.
     """
     n = x.shape[0]
     q = max(1, win // 8)
     nb_ = (n + q - 1) // q
-    bmax = np.empty(nb_)
-    bmin = np.empty(nb_)
-    for b in range(nb_):
-        lo = b * q
-        hi = min(n, lo + q)
-        mx = x[lo]
-        mn = x[lo]
-        for j in range(lo + 1, hi):
-            v = x[j]
-            if v > mx:
-                mx = v
-            elif v < mn:
-                mn = v
-        bmax[b] = mx
-        bmin[b] = mn
+    full = n // q  # blocks without the short last one
     r = max(1, (win // q) // 2)
+    s = np.empty((4, nb_))
+    bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
     for b in range(nb_):
-        mx = bmax[b]
-        mn = bmin[b]
-        for c in range(max(0, b - r), min(nb_, b + r + 1)):
-            if bmax[c] > mx:
-                mx = bmax[c]
-            if bmin[c] < mn:
-                mn = bmin[c]
-        mid = 0.5 * (mx + mn)
+        bmax[b] = x[b * q]
+        bmin[b] = x[b * q]
+    for t in range(1, q):
+        for b in range(full):
+            v = x[b * q + t]
+            bmax[b] = max(bmax[b], v)
+            bmin[b] = min(bmin[b], v)
+    for j in range(full * q + 1, n):
+        bmax[full] = max(bmax[full], x[j])
+        bmin[full] = min(bmin[full], x[j])
+    wmax[:] = bmax
+    wmin[:] = bmin
+    for c in range(1, r + 1):
+        for b in range(nb_ - c):
+            wmax[b] = max(wmax[b], bmax[b + c])
+            wmin[b] = min(wmin[b], bmin[b + c])
+        for b in range(c, nb_):
+            wmax[b] = max(wmax[b], bmax[b - c])
+            wmin[b] = min(wmin[b], bmin[b - c])
+    for b in range(nb_):
+        mid = 0.5 * (wmax[b] + wmin[b])
+        mn = wmin[b]
         for j in range(b * q, min(n, b * q + q)):
             out[0, j] = mid
             out[1, j] = mn
@@ -141,7 +164,6 @@ def _row_signals(img, y0, y1, weights, out):
     """
     h, w = img.shape[0], img.shape[1]
     n_p = weights.shape[0]
-    out[:, :] = 0.0
     for p in range(n_p):
         # the (at most two) channels with a weight
         c0 = -1
@@ -154,6 +176,19 @@ def _row_signals(img, y0, y1, weights, out):
                     c1 = c
         w0 = weights[p, c0] if c0 >= 0 else 0.0
         w1 = weights[p, c1] if c1 >= 0 else 0.0
+        if y0 == y1:
+            # one row (the usual case): written at once, the same values as summed below
+            yy = min(max(y0, 0), h - 1)
+            if c1 >= 0:
+                for j in range(w):
+                    out[p, j] = 0.0 + (w0 * img[yy, j, c0] + w1 * img[yy, j, c1])
+            elif c0 >= 0:
+                for j in range(w):
+                    out[p, j] = 0.0 + w0 * img[yy, j, c0]
+            else:
+                out[p, :] = 0.0
+            continue
+        out[p, :] = 0.0
         for y in range(y0, y1 + 1):
             yy = min(max(y, 0), h - 1)
             if c1 >= 0:
@@ -162,10 +197,11 @@ def _row_signals(img, y0, y1, weights, out):
             elif c0 >= 0:
                 for j in range(w):
                     out[p, j] += w0 * img[yy, j, c0]
-    inv = 1.0 / (y1 - y0 + 1)
-    for p in range(n_p):
-        for j in range(w):
-            out[p, j] *= inv
+    if y1 > y0:
+        inv = 1.0 / (y1 - y0 + 1)
+        for p in range(n_p):
+            for j in range(w):
+                out[p, j] *= inv
 
 
 @nb.njit(cache=True)
@@ -202,29 +238,33 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     n = x.shape[0]
     max_b = out.shape[0]
     # segments above the sliding mid-level
-    seg_a = np.empty(max_b + 1, np.int64)
-    seg_b = np.empty(max_b + 1, np.int64)
+    seg = np.empty((2, max_b + 1), np.int64)
+    seg_a = seg[0]
+    seg_b = seg[1]
+    lev = thr[0]
     ns = 0
     j = 0
     while j < n and ns < max_b + 1:
-        if x[j] > thr[0, j]:
-            a = j
-            while j < n and x[j] > thr[0, j]:
-                j += 1
-            b = j - 1
-            # noise on a low ramp can dip below the level for a sample or two:
-            # such a split is one band, and a lone sample above it no band
-            if ns > 0 and a - seg_b[ns - 1] - 1 <= 2:
-                seg_b[ns - 1] = b
-            elif b > a:
-                seg_a[ns] = a
-                seg_b[ns] = b
-                ns += 1
-        else:
+        while j < n and not x[j] > lev[j]:
             j += 1
+        if j == n:
+            break
+        a = j
+        while j < n and x[j] > lev[j]:
+            j += 1
+        b = j - 1
+        # noise on a low ramp can dip below the level for a sample or two:
+        # such a split is one band, and a lone sample above it no band
+        if ns > 0 and a - seg_b[ns - 1] - 1 <= 2:
+            seg_b[ns - 1] = b
+        elif b > a:
+            seg_a[ns] = a
+            seg_b[ns] = b
+            ns += 1
     ns = min(ns, max_b)
-    gap_lv = np.empty(ns + 1)
-    gap_dp = np.empty(ns + 1)
+    gaps = np.empty((2, ns + 1))
+    gap_lv = gaps[0]
+    gap_dp = gaps[1]
     gap_done = np.zeros(ns + 1, np.bool_)
     for k in range(ns):
         for f in range(N_FIELDS):
@@ -236,6 +276,7 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_START] = a
         out[k, F_END] = b
         if a == 0 or b == n - 1:
+            out[k, F_VALID] = BAND_CUT
             continue  # needs a gap on both sides
         # background: mean of the middle half of each neighbouring gap
         gl0 = seg_b[k - 1] + 1 if k > 0 else max(0, a - 24)
@@ -243,6 +284,7 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gr0 = b + 1
         gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
         if gl1 < gl0 or gr1 < gr0:
+            out[k, F_VALID] = BAND_OVERLAP
             continue
         # each gap serves two bands: measure it once
         if not gap_done[k]:
@@ -254,15 +296,21 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         br, vr = gap_lv[k + 1], gap_dp[k + 1]
         # first pass: half of the maximum
         jm = a
-        for i in range(a, b + 1):
-            if x[i] > x[jm]:
+        top = x[a]
+        for i in range(a + 1, b + 1):
+            v = x[i]
+            if v > top:
+                top = v
                 jm = i
         bg = 0.5 * (bl + br)
-        top = x[jm]
+        out[k, F_VALID] = BAND_FAINT  # until it is measured
         if top - bg < min_contrast:
             continue
-        xl = _crossing_left(x, jm, bg + 0.5 * (top - bg))
-        xr = _crossing_right(x, jm, bg + 0.5 * (top - bg))
+        level1 = bg + 0.5 * (top - bg)
+        sl = _walk_left(x, jm, level1)
+        sr = _walk_right(x, jm, level1)
+        xl = _at_left(x, sl, level1)
+        xr = _at_right(x, sr, level1)
         if xl < 0 or xr < 0:
             continue
         # plateau: mean over the central half of the band (the max alone is biased by noise)
@@ -286,13 +334,18 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         if height < min_contrast:
             continue
         level = bg + 0.5 * height
-        xl = _crossing_left(x, jm, level)
-        xr = _crossing_right(x, jm, level)
+        # a walk to a lower level passes where the walk to a higher one ended
+        # (every sample from there to the peak is above both): it starts there
+        wl = _walk_left(x, sl if level <= level1 else jm, level)
+        wr = _walk_right(x, sr if level <= level1 else jm, level)
+        xl = _at_left(x, wl, level)
+        xr = _at_right(x, wr, level)
         if xl < 0 or xr < 0:
             continue
         # ramps at 20 % height: symmetric for a band the surface carried whole
-        x20l = _crossing_left(x, jm, bg + 0.2 * height)
-        x20r = _crossing_right(x, jm, bg + 0.2 * height)
+        level20 = bg + 0.2 * height
+        x20l = _at_left(x, _walk_left(x, wl if level20 <= level else jm, level20), level20)
+        x20r = _at_right(x, _walk_right(x, wr if level20 <= level else jm, level20), level20)
         if x20l < 0 or x20r < 0:
             continue
         ramp_l = xl - x20l
@@ -303,30 +356,34 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         out[k, F_END] = xr
         out[k, F_HEIGHT] = height
         out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
+        # the first failed check names the reason (BAND_*)
         # equal ramps: a band cut by an edge has one sharp side
-        ok = abs(ramp_l - ramp_r) <= sym_tol + 0.3 * max(ramp_l, ramp_r)
+        code = BAND_VALID
+        if abs(ramp_l - ramp_r) > sym_tol + 0.3 * max(ramp_l, ramp_r):
+            code = BAND_CUT
         # the gaps must reach the floor: between touching bands the "gap" is two ramps
         # and its level is well above the lowest level around
-        if bg - thr[1, jm] > 0.25 * height:
-            ok = False
+        if code > 0 and bg - thr[1, jm] > 0.25 * height:
+            code = BAND_OVERLAP
         # ... and a V-shaped gap (two ramps meeting) is lower in its middle than around
-        if max(vl, vr) > 0.12 * height:
-            ok = False
+        if code > 0 and max(vl, vr) > 0.12 * height:
+            code = BAND_OVERLAP
         # a swept line leaves a plateau without dips; print or an edge inside the band does
         i0 = int(np.ceil(xl + 0.5 * ramp_l))
         i1 = int(np.floor(xr - 0.5 * ramp_r))
-        for i in range(i0, i1 + 1):
-            if x[i] < bg + 0.6 * height:
-                ok = False
-                break
+        if code > 0:
+            for i in range(i0, i1 + 1):
+                if x[i] < bg + 0.6 * height:
+                    code = BAND_IRREGULAR
+                    break
         # a band running into the image border may be cut: it must visibly end before it
         margin = 2.0 * max(ramp_l, ramp_r) + 4.0
         if x20l - margin < 0 or x20r + margin > n - 1:
             out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
-            ok = False
+            code = BAND_CUT
         # support of the band (ramp extrapolated to zero) must leave a flat gap
         out[k, F_INTERVAL] = (ramp_l + ramp_r) / 0.6  # temporarily: full ramp length
-        out[k, F_VALID] = 1.0 if ok else 0.0
+        out[k, F_VALID] = code
     # intervals from neighbour centres; consistency and gap checks
     for k in range(ns):
         ramp = out[k, F_INTERVAL]
@@ -334,8 +391,10 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         c0 = out[k, F_CENTRE]
         cp = out[k - 1, F_CENTRE] if k > 0 else np.nan
         cn = out[k + 1, F_CENTRE] if k < ns - 1 else np.nan
+        valid = out[k, F_VALID] > 0.0
         if not np.isfinite(c0) or not (np.isfinite(cp) or np.isfinite(cn)):
-            out[k, F_VALID] = 0.0
+            if valid:
+                out[k, F_VALID] = BAND_IRREGULAR  # no neighbour to measure an interval
             continue
         if not (np.isfinite(cp) and np.isfinite(cn)):
             # outermost band of a run: one-sided interval, checked against the next one
@@ -345,38 +404,42 @@ def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             d1 = abs(c1 - c0)
             d2 = abs(c2 - c1) if np.isfinite(c2) else np.nan
             if not (d2 > 2.0 and d1 > 2.0):  # merged bands can share a centre
-                out[k, F_VALID] = 0.0
+                if valid:
+                    out[k, F_VALID] = BAND_OVERLAP
                 continue
             # the missing spacing extrapolated linearly; the interval is the mean of both
             interval = 1.5 * d1 - 0.5 * d2
             out[k, F_INTERVAL] = interval
-            if out[k, F_VALID] == 0.0 or abs(d1 - d2) > itol * interval:
-                out[k, F_VALID] = 0.0
+            if not valid:
+                continue
+            if abs(d1 - d2) > itol * interval:
+                out[k, F_VALID] = BAND_IRREGULAR
                 continue
             if out[k, F_LENGTH] + ramp > interval - min_gap:
-                out[k, F_VALID] = 0.0
+                out[k, F_VALID] = BAND_OVERLAP
             continue
         d1 = c0 - cp
         d2 = cn - c0
         interval = 0.5 * (d1 + d2)
         out[k, F_INTERVAL] = interval
         if not (d1 > 2.0 and d2 > 2.0):  # merged bands can share a centre
-            out[k, F_VALID] = 0.0
+            if valid:
+                out[k, F_VALID] = BAND_OVERLAP
             continue
-        if out[k, F_VALID] == 0.0:
+        if not valid:
             continue
         if abs(d1 - d2) > itol * interval:
-            out[k, F_VALID] = 0.0
+            out[k, F_VALID] = BAND_IRREGULAR
             continue
         support = out[k, F_LENGTH] + ramp
         if support > interval - min_gap:
-            out[k, F_VALID] = 0.0
+            out[k, F_VALID] = BAND_OVERLAP
             continue
         hp = out[k - 1, F_HEIGHT]
         hn = out[k + 1, F_HEIGHT]
         h0 = out[k, F_HEIGHT]
         if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
-            out[k, F_VALID] = 0.0
+            out[k, F_VALID] = BAND_IRREGULAR
     return ns
 
 
@@ -412,15 +475,18 @@ def _slant_row(bands, counts, row_y, i, o):
             bands[i, k, F_SLANT] = best / dy
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)
 def band_slants(bands, counts, row_y):
-    """Slants of every band, each row paired with the measured row above (below for the first)."""
+    """Slants of every band, each row paired with the measured row above (below for the first).
+
+    One thread: about 0.1 ms a frame, less than waking a second one costs.
+    """
     rows = counts.shape[0]
     if rows < 2:
         for k in range(counts[0] if rows else 0):
             bands[0, k, F_SLANT] = 0.0
         return
-    for i in nb.prange(rows):
+    for i in range(rows):
         _slant_row(bands, counts, row_y, i, i - 1 if i > 0 else 1)
 
 
@@ -472,11 +538,17 @@ def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
     nf = fields.shape[0]
     cells = counts.shape[0] // k
     for i in nb.prange(cells):
+        tbuf = np.empty(gw)
+        if k == 1:
+            # one row per cell: rasterised straight into the grid (where the first
+            # field is NaN, so are all: the rows below write all fields together)
+            _rasterise_row(bands, counts, i, stride, gw, reach, fields, out, i, tbuf)
+            continue
         buf = np.empty((nf, 1, gw))
         acc = np.zeros((nf, gw))
         n = np.zeros(gw, np.int64)
         for q in range(k):
-            _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf)
+            _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, 0, tbuf)
             for j in range(gw):
                 if not np.isnan(buf[0, 0, j]):
                     n[j] += 1
@@ -543,17 +615,16 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
 
 
 @nb.njit(cache=True)
-def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
+def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     """Interpolate the band fields of measured row ``r`` onto the grid columns.
 
-    ``maps[f, 0, :]`` receives field ``fields[f]`` (``fields[1]`` must be the
+    ``maps[f, i, :]`` receives field ``fields[f]`` (``fields[1]`` must be the
     interval).  Values are interpolated linearly between neighbouring valid bands
     at most 1.6 intervals apart and extrapolated linearly ``reach`` intervals
-    beyond the ends of each run; elsewhere NaN.
+    beyond the ends of each run; elsewhere NaN.  ``t``: scratch of ``gw`` values.
     """
     nf = fields.shape[0]
     off = 0.5 * (stride - 1)
-    i = 0
     for f in range(nf):
         for j in range(gw):
             maps[f, i, j] = np.nan
@@ -566,13 +637,16 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps):
             c0 = bands[r, prev, F_CENTRE]
             c1 = bands[r, k, F_CENTRE]
             if 0.0 < c1 - c0 <= 1.6 * max(bands[r, prev, F_INTERVAL], bands[r, k, F_INTERVAL]):
-                j0 = int(np.ceil((c0 - off) / stride))
-                j1 = int(np.floor((c1 - off) / stride))
-                for j in range(max(j0, 0), min(j1, gw - 1) + 1):
-                    t = (j * stride + off - c0) / (c1 - c0)
-                    for f in range(nf):
-                        v0 = bands[r, prev, fields[f]]
-                        maps[f, i, j] = v0 + t * (bands[r, k, fields[f]] - v0)
+                j0 = max(int(np.ceil((c0 - off) / stride)), 0)
+                j1 = min(int(np.floor((c1 - off) / stride)), gw - 1)
+                # positions first, then one field at a time: loops without reloads
+                for j in range(j0, j1 + 1):
+                    t[j] = (j * stride + off - c0) / (c1 - c0)
+                for f in range(nf):
+                    v0 = bands[r, prev, fields[f]]
+                    dv = bands[r, k, fields[f]] - v0
+                    for j in range(j0, j1 + 1):
+                        maps[f, i, j] = v0 + t[j] * dv
         # a band without partner still marks its own grid sample
         c = bands[r, k, F_CENTRE]
         jc = int(np.floor((c - off) / stride + 0.5))

@@ -209,8 +209,9 @@ def chunk_task(
     for i in indices:
         stem = recording.frames[i].stem
         for p in ((out / f"{stem}.npy") if export_depth else None,
+                  (out / f"{stem}_std.npy") if export_depth else None,
                   (out / "ply" / f"{stem}.ply") if export_ply else None):  # fmt: skip
-            if p is not None:
+            if p is not None and p.exists():
                 bytes_out += p.stat().st_size
     info = {
         "frames": len(indices), "setup_s": t1 - t0, "load_s": t_load, "process_s": t_proc,

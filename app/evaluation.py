@@ -70,6 +70,12 @@ class FrameMetrics:
         Pixels with a depth, and how many of them are off the moving objects.
     n_plane : int
         Points that entered the plane RMSE.
+    n_sigma, n_within_1sigma, n_within_2sigma : int
+        Depth pixels on the object with a predicted standard deviation, and how
+        many of them are within one and two of it of the truth.
+    target_causes : tuple of int
+        Per :mod:`lightflow.app.causes` code, the target pixels (moving, lit by
+        every projector) that got it: ``[0]`` those with a depth, the rest why not.
     errors : numpy.ndarray
         The per-pixel signed errors (estimate - truth, float32), for pooling over frames.
     """
@@ -87,6 +93,10 @@ class FrameMetrics:
     n_off: int
     n_plane: int
     errors: np.ndarray = field(repr=False, compare=False)
+    n_sigma: int = 0
+    n_within_1sigma: int = 0
+    n_within_2sigma: int = 0
+    target_causes: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -113,6 +123,9 @@ class RecordingMetrics:
     plane_rmse_m: float
     planar: bool
     per_frame: tuple[FrameMetrics, ...] = field(repr=False, compare=False)
+    within_1sigma: float = math.nan
+    within_2sigma: float = math.nan
+    no_depth_causes: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (NaN becomes null), with the per-frame figures."""
@@ -202,6 +215,9 @@ def evaluate_frame(
     truth,
     rays: np.ndarray | None = None,
     n_projectors: int | None = None,
+    depth_std: np.ndarray | None = None,
+    causes_grid: np.ndarray | None = None,
+    stride: int = 1,
 ) -> FrameMetrics:
     """Compare one depth map with its ground truth.
 
@@ -216,6 +232,12 @@ def evaluate_frame(
         needed for the plane RMSE of planar scenes.
     n_projectors : int, optional
         Number of projectors of the rig; inferred from ``truth.lit`` when omitted.
+    depth_std : numpy.ndarray, optional
+        ``(H, W)`` predicted standard deviation of ``depth``: scored against the errors.
+    causes_grid : numpy.ndarray, optional
+        The pipeline's cause code per grid pixel (grid ``stride``): counted on the
+        target pixels.
+    stride : int
 
     Returns
     -------
@@ -245,7 +267,32 @@ def evaluate_frame(
         if sq:
             all_sq = np.concatenate(sq)
             rmse, n_plane = float(np.sqrt(all_sq.mean())), int(all_sq.size)
+    n_sigma = n1 = n2 = 0
+    if depth_std is not None:
+        sd = depth_std[on_object]
+        has = np.isfinite(sd)
+        err = np.abs(errors[has])
+        n_sigma = int(np.count_nonzero(has))
+        n1 = int(np.count_nonzero(err <= sd[has]))
+        n2 = int(np.count_nonzero(err <= 2.0 * sd[has]))
+    target_causes: tuple = ()
+    if causes_grid is not None:
+        from lightflow.app.causes import count_causes
+
+        ys, xs = np.nonzero(target)
+        gh, gw = causes_grid.shape
+        codes = causes_grid[np.minimum(ys // stride, gh - 1), np.minimum(xs // stride, gw - 1)]
+        # the grid says "depth" where the full-resolution map may not (NaN spreads in the
+        # upsampling): count the target pixels by the full-resolution depth
+        codes = np.where(has_depth[ys, xs], 0, np.where(codes == 0, 255, codes))
+        counted = count_causes(codes[codes != 255])
+        counted[0] = n_covered
+        target_causes = tuple(int(c) for c in counted)
     return FrameMetrics(
+        n_sigma=n_sigma,
+        n_within_1sigma=n1,
+        n_within_2sigma=n2,
+        target_causes=target_causes,
         coverage=n_covered / n_target if n_target else math.nan,
         median_error_m=med,
         mean_error_m=mean,
@@ -289,7 +336,28 @@ def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
         "median_signed_m": signed,
         "off_object": sum(m.n_off for m in per_frame) / n_depth if n_depth else 0.0,
         "plane_rmse_m": math.sqrt(sq / n_plane) if n_plane else math.nan,
+        **_sigma_and_causes(per_frame, n_target),
     }
+
+
+def _sigma_and_causes(per_frame: list[FrameMetrics], n_target: int) -> dict:
+    """Shares within 1 and 2 predicted sigma; shares of the target pixels by cause."""
+    from lightflow.app.causes import CAUSE_NAMES
+
+    n_sigma = sum(m.n_sigma for m in per_frame)
+    out = {
+        "within_1sigma": sum(m.n_within_1sigma for m in per_frame) / n_sigma
+        if n_sigma else math.nan,
+        "within_2sigma": sum(m.n_within_2sigma for m in per_frame) / n_sigma
+        if n_sigma else math.nan,
+        "no_depth_causes": {},
+    }  # fmt: skip
+    counted = [m.target_causes for m in per_frame if m.target_causes]
+    if counted and n_target:
+        total = np.sum(counted, axis=0)
+        out["no_depth_causes"] = {CAUSE_NAMES[c]: float(total[c] / n_target)
+                                  for c in range(1, len(total)) if total[c]}  # fmt: skip
+    return out
 
 
 # ----------------------------------------------------------------------------- recordings
@@ -381,7 +449,8 @@ def evaluate_recording(
         planar = planar or truth.planar
         frame = Frame(i, entry.t, rec.exposure_s, load_frame(rec, i), entry.stem)
         result = pipeline.process(frame)
-        per_frame.append(evaluate_frame(result.depth, truth, rays, n_proj))
+        per_frame.append(evaluate_frame(result.depth, truth, rays, n_proj, result.depth_std,
+                                        result.causes_grid, result.stride))  # fmt: skip
         if progress:
             progress("frames", i + 1, len(rec.frames))
     return RecordingMetrics(

@@ -17,6 +17,7 @@ import cv2
 import numba as nb
 import numpy as np
 
+from . import causes as cz
 from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
 from .patterns import local_pitch
@@ -81,8 +82,59 @@ class FlowParams:
     blur_refit_frames: int = 30
 
 
+@dataclass(frozen=True)
+class FlowMaps:
+    """What :meth:`FlowModel.combine` finds on the analysis grid (NaN = no value).
+
+    Attributes
+    ----------
+    log_ratio : numpy.ndarray
+        Raw log flow ratio, before the final smoothing.
+    flows : list of numpy.ndarray
+        Per pattern, the flow in projector pixels.
+    blur_px : list of float
+        Per pattern, the blur sigma (camera px) at the median magnification.
+    lr_var : numpy.ndarray
+        Random error of ``log_ratio``: its variance.
+    lr_sys : numpy.ndarray
+        Systematic error of ``log_ratio`` (blur model), one standard deviation.
+    why : numpy.ndarray
+        uint8 :mod:`lightflow.app.causes` code: ``DEPTH`` where ``log_ratio`` is
+        finite, else why not.
+    """
+
+    log_ratio: np.ndarray
+    flows: list
+    blur_px: list
+    lr_var: np.ndarray
+    lr_sys: np.ndarray
+    why: np.ndarray
+
+
 #: frames whose moving bands are pooled for the blur fit
 BLUR_POOL_FRAMES = 8
+
+
+#: relative error of the fitted blur sigma that the uncertainty allows for: a sweep
+#: shorter than the line is read from its ramps, and there it depends on the blur
+BLUR_REL_ERROR = 0.1
+
+
+@nb.njit(cache=True, inline="always")
+def _sweep_of(m, r, line, sigma, m_max, inv, inv_m, s_lo, s_step, w_step, m_step, r_step,
+              blur_known):  # fmt: skip
+    """The sweep (camera px) of a band of width ``m`` and ramp ``r``; NaN if it cannot be read."""
+    if m >= m_max:
+        # far beyond line width and blur: the width at half height is the sweep
+        return m
+    if m > line + 4.0 * sigma + 2.0:
+        # a long band: its ramps are the line edge, its width alone decides
+        # (the same answer as the joint inverse, for half the memory reads)
+        return trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
+    if blur_known:
+        # width and ramp together: a sweep shorter than the line shows in the ramps
+        return joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
+    return np.nan
 
 
 @nb.njit(cache=True, parallel=True)
@@ -90,12 +142,16 @@ def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
     static_factor, static_margin, blur_known, sweeps, moving_at, pitch, interval_ratio, banded,
+    sens, why,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
     ``moving_at[p]``: the sweep (index units) above which the line clearly moves;
     ``banded``: 1 where both patterns have a band (moving or not), else 0;
-    ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0).
+    ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0);
+    ``sens[p]``: how much the sweep (index units) changes when the blur sigma is
+    off by ``BLUR_REL_ERROR`` (signed: both patterns share one blur model);
+    ``why``: a :mod:`.causes` code for cells without sweeps, else ``DEPTH``.
     Cells whose sweep is hidden in the line width (below ``lo_factor * line +
     lo_margin``) or whose bands fill the interval get NaN.
     """
@@ -105,12 +161,15 @@ def _sweeps(
         for j in range(gw):
             interval_ratio[i, j] = np.nan
             banded[i, j] = 0.0
+            why[i, j] = cz.DEPTH
             for p in range(2):
                 sweeps[p, i, j] = np.nan
                 moving_at[p, i, j] = np.nan
+                sens[p, i, j] = 0.0
             B0 = grids[0, 1, i, j]
             B1 = grids[1, 1, i, j]
             if not (B0 > 0.0 and B1 > 0.0):
+                why[i, j] = cz.NO_LINES
                 continue
             if np.isfinite(grids[0, 0, i, j]) and np.isfinite(grids[1, 0, i, j]):
                 banded[i, j] = 1.0
@@ -119,10 +178,10 @@ def _sweeps(
             if single:
                 t = (ir - u_lo) / u_step
                 if not (t >= 0.0 and t <= nu - 1):
+                    why[i, j] = cz.IRREGULAR  # an interval ratio the patterns cannot make
                     continue
                 k = min(int(t), nu - 2)
                 u = u_of[k] + (t - k) * (u_of[k + 1] - u_of[k])
-            ok = True
             for p in range(2):
                 m = grids[p, 0, i, j]
                 B = grids[p, 1, i, j]
@@ -135,39 +194,50 @@ def _sweeps(
                 # camera blur is isotropic: along a row it widens a slanted edge
                 sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
                 r = grids[p, 2, i, j]
-                if m >= m_max:
-                    # far beyond line width and blur: the width at half height is the sweep
-                    L = m
-                elif m > line + 4.0 * sigma + 2.0:
-                    # a long band: its ramps are the line edge, its width alone decides
-                    # (the same answer as the joint inverse, for half the memory reads)
-                    L = trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
-                elif blur_known:
-                    # width and ramp together: a sweep shorter than the line shows in the ramps
-                    L = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
-                else:
-                    # a short sweep read with a guessed blur is biased: wait for the fit
-                    L = np.nan
+                L = _sweep_of(m, r, line, sigma, m_max, inv, inv_m, s_lo, s_step, w_step,
+                              m_step, r_step, blur_known)  # fmt: skip
+                if not np.isfinite(L):
+                    if not blur_known and m <= line + 4.0 * sigma + 2.0:
+                        # a band no wider than its line is static (or too short to tell);
+                        # a wider one is a short sweep that needs the fitted blur
+                        why[i, j] = cz.BLUR_UNKNOWN if m > line + 1.0 else cz.STATIC
+                    elif np.isfinite(m):
+                        why[i, j] = cz.MODEL_RANGE
+                    else:
+                        why[i, j] = cz.NO_LINES
+                    break
                 if not (L > lo_factor * line + lo_margin):
-                    ok = False  # no measurable sweep: a static (or nearly static) line
+                    why[i, j] = cz.STATIC  # no measurable sweep: a (nearly) static line
                     break
                 if L + line + 2.0 * sigma > B:
-                    ok = False  # swept line and its blur fill the interval: bands overlap
+                    why[i, j] = cz.OVERLAP  # swept line and its blur fill the interval
                     break
+                hi = _sweep_of(m, r, line, sigma * (1.0 + BLUR_REL_ERROR), m_max, inv, inv_m,
+                               s_lo, s_step, w_step, m_step, r_step, blur_known)  # fmt: skip
+                lo = _sweep_of(m, r, line, sigma * (1.0 - BLUR_REL_ERROR), m_max, inv, inv_m,
+                               s_lo, s_step, w_step, m_step, r_step, blur_known)  # fmt: skip
+                if np.isfinite(hi) and np.isfinite(lo):
+                    sens[p, i, j] = 0.5 * (hi - lo) / B
+                else:
+                    sens[p, i, j] = (L - lo_factor * line) / B  # at the edge of the tables
                 sweeps[p, i, j] = L / B
                 moving_at[p, i, j] = (static_factor * line + static_margin) / B
                 pitch[p, i, j] = P
-            if not ok:
+            if why[i, j] != cz.DEPTH:
                 for p in range(2):
                     sweeps[p, i, j] = np.nan
                 continue
             interval_ratio[i, j] = ir
 
 
+#: channels of the stack averaged around each cell: the two sweeps, where both are
+#: valid, where both patterns have bands, the sweeps squared, the interval ratio, squared
+N_STACK = 8
+
+
 @nb.njit(cache=True, parallel=True)
-def _pack(sweeps, banded, stack):
-    """``stack[..., p]``: sweep of pattern p where both are valid (else 0); ``[..., 2]``: mask;
-    ``[..., 3]``: where both patterns have bands."""
+def _pack(sweeps, banded, interval_ratio, stack):
+    """Fill the :data:`N_STACK` channels of ``stack`` (0 where the sweeps are invalid)."""
     gh, gw = stack.shape[:2]
     for i in nb.prange(gh):
         for j in range(gw):
@@ -175,20 +245,26 @@ def _pack(sweeps, banded, stack):
             a = sweeps[0, i, j]
             b = sweeps[1, i, j]
             if np.isfinite(a) and np.isfinite(b):
+                ir = interval_ratio[i, j]
                 stack[i, j, 0] = a
                 stack[i, j, 1] = b
                 stack[i, j, 2] = 1.0
+                stack[i, j, 4] = a * a
+                stack[i, j, 5] = b * b
+                stack[i, j, 6] = ir
+                stack[i, j, 7] = ir * ir
             else:
-                stack[i, j, 0] = 0.0
-                stack[i, j, 1] = 0.0
-                stack[i, j, 2] = 0.0
+                for c in (0, 1, 2, 4, 5, 6, 7):
+                    stack[i, j, c] = 0.0
 
 
 @nb.njit(cache=True, parallel=True)
 def _decide(
-    sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, share, log_ratio, flows
+    sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, share, sens, grids,
+    cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why,
 ):  # fmt: skip
-    """Moving test on the averaged sweeps, then the log ratio and the flows (projector px).
+    """Moving test on the averaged sweeps, then the log ratio, the flows (projector px)
+    and the log ratio's expected error.
 
     A cell far from the average around it is another surface (a static wall beside a
     blade): the average must not carry it over the static limit.  The test is
@@ -196,6 +272,11 @@ def _decide(
     around have a measurable sweep, the sweeps are at the floor of what can be
     measured, and the few that passed are the ones whose noise pushed them up:
     such cells are dropped (``share``).
+
+    The error of the log ratio has a random part, ``lr_var``: the local variance
+    of the sweeps over the number of independent bands averaged (cells along a
+    row between two bands share them), and a systematic part, ``lr_sys``: a blur
+    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).
     """
     gh, gw = log_ratio.shape
     for i in nb.prange(gh):
@@ -203,24 +284,41 @@ def _decide(
             log_ratio[i, j] = np.nan
             flows[0, i, j] = np.nan
             flows[1, i, j] = np.nan
+            lr_var[i, j] = np.nan
+            lr_sys[i, j] = np.nan
             den = blurred[i, j, 2]
             both = np.isfinite(sweeps[0, i, j]) and np.isfinite(sweeps[1, i, j])
             if not (den > 0.0 and both):
                 continue
             if den < share * blurred[i, j, 3]:
+                why[i, j] = cz.STATIC  # sweeps at the floor of what can be measured
                 continue
-            ok = True
             for p in range(2):
                 sm = blurred[i, j, p] / den
-                if not (sm > moving_at[p, i, j]) or abs(sweeps[p, i, j] - sm) >= outlier * sm:
-                    ok = False
-            if not ok:
+                if not (sm > moving_at[p, i, j]):
+                    why[i, j] = cz.STATIC
+                elif abs(sweeps[p, i, j] - sm) >= outlier * sm and why[i, j] == cz.DEPTH:
+                    why[i, j] = cz.INCONSISTENT
+            if why[i, j] != cz.DEPTH:
                 continue
             s0 = blurred[i, j, 0] / den
             s1 = blurred[i, j, 1] / den
             flows[0, i, j] = s0 * pitch[0, i, j]
             flows[1, i, j] = s1 * pitch[1, i, j]
-            log_ratio[i, j] = interval_ratio[i, j] if single else math.log(s0 / s1)
+            # independent bands in the kernel: valid cells, of which B / stride share a band
+            interval = 0.5 * (grids[0, 1, i, j] + grids[1, 1, i, j])
+            n = max(1.0, cells_per_kernel * den / max(1.0, interval))
+            if single:
+                ir = blurred[i, j, 6] / den
+                log_ratio[i, j] = interval_ratio[i, j]
+                lr_var[i, j] = max(blurred[i, j, 7] / den - ir * ir, 0.0) / n
+                lr_sys[i, j] = 0.0
+            else:
+                log_ratio[i, j] = math.log(s0 / s1)
+                v0 = max(blurred[i, j, 4] / den - s0 * s0, 0.0) / (s0 * s0)
+                v1 = max(blurred[i, j, 5] / den - s1 * s1, 0.0) / (s1 * s1)
+                lr_var[i, j] = (v0 + v1) / n
+                lr_sys[i, j] = abs(sens[0, i, j] / s0 - sens[1, i, j] / s1)
 
 
 class FlowModel:
@@ -277,10 +375,8 @@ class FlowModel:
         return (not self._fitted or frame in BLUR_EARLY_REFITS
                 or frame % params.blur_refit_frames == 0)  # fmt: skip
 
-    def combine(
-        self, grids: np.ndarray, params: FlowParams
-    ) -> tuple[np.ndarray, list[np.ndarray], list[float]]:
-        """Per-pixel raw log ratio and the two flows in projector pixels (NaN = invalid).
+    def combine(self, grids: np.ndarray, params: FlowParams) -> FlowMaps:
+        """Per-pixel raw log ratio, the two flows in projector pixels, and their errors.
 
         Parameters
         ----------
@@ -292,11 +388,7 @@ class FlowModel:
 
         Returns
         -------
-        log_ratio : numpy.ndarray
-        flows : list of numpy.ndarray
-            Flows in projector pixels.
-        blur : list of float
-            Per pattern, the blur sigma (camera px) at the median magnification.
+        FlowMaps
         """
         tab = tables()
         f = self.frames
@@ -308,30 +400,38 @@ class FlowModel:
         sweeps = np.empty((2, gh, gw), np.float32)
         moving_at = np.empty((2, gh, gw), np.float32)
         pitch = np.ones((2, gh, gw), np.float32)
+        sens = np.empty((2, gh, gw), np.float32)
         interval_ratio = np.empty((gh, gw), np.float32)
         banded = np.empty((gh, gw), np.float32)
+        why = np.empty((gh, gw), np.uint8)
         _sweeps(
             grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
             params.static_margin_px, self._fitted, sweeps, moving_at, pitch, interval_ratio,
-            banded,
+            banded, sens, why,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
         # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
-        # Both patterns and their common mask in one 3-channel blur.
+        # Both patterns, their common mask and their second moments in one blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
-        stack = np.empty((gh, gw, 4), np.float32)
-        _pack(sweeps, banded, stack)
+        stack = np.empty((gh, gw, N_STACK), np.float32)
+        _pack(sweeps, banded, interval_ratio, stack)
         blurred = _gauss(stack, sigma) if sigma > 0 else stack
         log_ratio = np.empty((gh, gw), np.float32)
         flows = np.empty((2, gh, gw), np.float32)
+        lr_var = np.empty((gh, gw), np.float32)
+        lr_sys = np.empty((gh, gw), np.float32)
+        # grid cells under the averaging kernel, times the stride: over the interval
+        # (camera px) it is the number of independent bands averaged
+        cells = 4.0 * math.pi * sigma * sigma * self.stride if sigma > 0 else self.stride
         _decide(sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
-                params.sweep_outlier, params.measured_share, log_ratio, flows)  # fmt: skip
+                params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio,
+                flows, lr_var, lr_sys, why)  # fmt: skip
         self.frames += 1
-        return log_ratio, [flows[0], flows[1]], list(self.blur_px)
+        return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why)
 
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""
@@ -392,13 +492,17 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
     weight around them is valid (holes inside a surface are filled; the
     surface does not grow past its edges).
     """
-    mask = np.isfinite(values)
     if sigma <= 0:
         return values
-    m = mask.astype(np.float32)
-    v = np.where(mask, values, 0).astype(np.float32)
+    return _masked_smooth(values.astype(np.float32, copy=False), np.isfinite(values), sigma,
+                          fill_fraction)  # fmt: skip
+
+
+def _masked_smooth(values, mask, sigma, fill_fraction):
+    # values: float32, mask: where they are finite (NaN elsewhere)
+    v = np.where(mask, values, np.float32(0.0))
     num = _gauss(v, sigma)
-    den = _gauss(m, sigma)
+    den = _gauss(mask.astype(np.float32), sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
     fill = den >= fill_fraction
@@ -408,13 +512,14 @@ def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) 
         # a third of the kernel is valid too, and filling there grew the object.
         # More than half the kernel valid is inside a straight edge, never beyond it.
         fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
-    out[~(mask | fill)] = np.nan
+    fill |= mask
+    np.copyto(out, np.float32(np.nan), where=~fill)
     return out
 
 
 def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
     """Pixels with a ``mask`` pixel within ``r`` on both sides along a row or a column."""
-    m = mask.astype(np.uint8)
+    m = mask.view(np.uint8)  # 0 or 1
     row = np.ones((1, r + 1), np.uint8)
     col = np.ones((r + 1, 1), np.uint8)
     # one-sided dilations: the anchor at one end of the kernel looks only one way
@@ -422,7 +527,10 @@ def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
     right = cv2.dilate(m, row, anchor=(0, 0))
     up = cv2.dilate(m, col, anchor=(0, r))
     down = cv2.dilate(m, col, anchor=(0, 0))
-    return ((left & right) | (up & down)).astype(bool)
+    left &= right
+    up &= down
+    left |= up
+    return left.view(bool)
 
 
 def smooth_log_ratio(
@@ -434,9 +542,10 @@ def smooth_log_ratio(
     if not outlier_sigmas > 0:
         return masked_smooth(log_ratio, sigma, fill_fraction)
     # a rough local mean is enough to spot outliers: a box filter costs less
+    log_ratio = log_ratio.astype(np.float32, copy=False)
     mask = np.isfinite(log_ratio)
     k = 2 * int(round(sigma)) + 1
-    num = cv2.blur(np.where(mask, log_ratio, 0).astype(np.float32), (k, k))
+    num = cv2.blur(np.where(mask, log_ratio, np.float32(0.0)), (k, k))
     den = cv2.blur(mask.astype(np.float32), (k, k))
     with np.errstate(invalid="ignore", divide="ignore"):
         first = num / den
@@ -446,7 +555,7 @@ def smooth_log_ratio(
     if finite.size < 16:
         return first
     mad = float(np.median(finite)) * 1.4826 + 1e-6
-    cleaned = np.where(resid <= outlier_sigmas * mad, log_ratio, np.nan)
-    out = masked_smooth(cleaned, sigma, fill_fraction)
+    # a NaN residual (no data, or none around) compares false: those are the NaN pixels
+    keep = resid <= outlier_sigmas * mad
     # outliers are replaced by their neighbourhood, pixels without data only inside
-    return out
+    return _masked_smooth(log_ratio, keep, sigma, fill_fraction)

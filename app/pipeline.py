@@ -13,13 +13,22 @@ import cv2
 import numpy as np
 
 from . import bands as bd
+from . import causes as cz
 from .depth_model import DepthLUT, DepthRange, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
-from .flow import FlowModel, FlowParams, smooth_log_ratio
+from .flow import FlowModel, FlowParams, masked_smooth, smooth_log_ratio
+from .profile_model import L_AXIS
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 
 MAX_BANDS_PER_ROW = 160
+#: the local spread of the sweeps over-counts independent bands (neighbouring rows see
+#: the same surface through the same blur): the random part of the predicted error is
+#: scaled by this (chosen on the tuning rigs of the evaluation matrix)
+NOISE_SCALE = 2.0
+#: error of the log flow ratio that no local spread shows (profile model, pattern
+#: geometry), one sigma; index: single projector or not (tuning rigs)
+LOG_RATIO_FLOOR = {False: 0.01, True: 0.01}
 
 
 @dataclass(frozen=True)
@@ -37,6 +46,11 @@ class PipelineConfig:
     bands : BandParams
     crosstalk : str or float
         ``auto`` estimates the colour leak from each frame; a number fixes it.
+    crosstalk_every : int
+        Frames between two estimates of the colour leak (and of the band windows).
+    max_depth_std : float
+        Pixels whose predicted depth standard deviation exceeds this share of
+        their depth get none (cause ``uncertain``).
     """
 
     stride: int = 4
@@ -45,10 +59,14 @@ class PipelineConfig:
     bands: bd.BandParams = field(default_factory=bd.BandParams)
     crosstalk: str | float = "auto"
     crosstalk_every: int = 30
+    max_depth_std: float = 0.03
 
     def __post_init__(self):
         if self.stride not in (1, 2, 4):
             raise ConfigError(f"stride: expected 1, 2 or 4, got {self.stride}")
+        if not self.max_depth_std > 0:
+            raise ConfigError(f"max_depth_std: expected a positive share of the depth, "
+                              f"got {self.max_depth_std}")  # fmt: skip
 
     @staticmethod
     def from_dict(d: dict, source: str = "pipeline options") -> PipelineConfig:
@@ -291,23 +309,43 @@ class DepthPipeline:
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
         t2 = time.perf_counter()
         timings["bands"] = (t2 - t1) * 1e3
-        raw, flows, self.blur_px = self.flow_model.combine(grids, cfg.flow)
+        fm = self.flow_model.combine(grids, cfg.flow)
+        self.blur_px = fm.blur_px
         t3 = time.perf_counter()
         timings["flow"] = (t3 - t2) * 1e3
+        raw, why = fm.log_ratio, fm.why
+        # predicted error of each pixel's depth, and no depth where it is too large
+        z_raw, dz_dh = self._depth_and_slope(raw)
+        why[np.isfinite(raw) & ~np.isfinite(z_raw)] = cz.DEPTH_RANGE
+        sigma_f = cfg.flow.smoothing_px / cfg.stride
+        sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
+        # the final smoothing averages the random part further (by its kernel area)
+        gain = min(1.0, (sigma_s / sigma_f) ** 2) if sigma_f > 0 else 1.0
+        floor = LOG_RATIO_FLOOR[self.flow_model.single]
+        with np.errstate(invalid="ignore"):
+            lr_var = fm.lr_var * (NOISE_SCALE**2 * gain) + fm.lr_sys**2 + floor**2
+            std = np.sqrt(lr_var) * dz_dh
+            uncertain = std > cfg.max_depth_std * z_raw
+        why[uncertain] = cz.UNCERTAIN
+        raw = np.where(np.isfinite(z_raw) & ~uncertain, raw, np.nan)
         log_ratio = smooth_log_ratio(
-            raw, cfg.flow.smoothing_px / cfg.stride, cfg.flow.outlier_sigmas,
-            cfg.flow.fill_fraction,
+            raw, sigma_f, cfg.flow.outlier_sigmas, cfg.flow.fill_fraction,
         )  # fmt: skip
+        std_grid = np.sqrt(masked_smooth(np.where(np.isfinite(raw), std * std, np.nan),
+                                         sigma_f, cfg.flow.fill_fraction))  # fmt: skip
         t4 = time.perf_counter()
         timings["smooth"] = (t4 - t3) * 1e3
         depth_grid = lookup_depth(self.lut, log_ratio)
+        std_grid[~np.isfinite(depth_grid)] = np.nan
         if cfg.stride == 1:
-            depth = depth_grid
+            depth, depth_std = depth_grid, std_grid
         else:
-            depth = self._upsample(depth_grid)
+            depth, depth_std = self._upsample(depth_grid), self._upsample(std_grid)
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
-        timings["total"] = (t5 - t0) * 1e3
+        causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
+        counts_by_cause = cz.count_causes(causes)
+        timings["total"] = (time.perf_counter() - t0) * 1e3
         self._frames += 1
         result_bands = [
             _band_set(pat.channel, bands[p], counts[p], self._row_y)
@@ -316,13 +354,64 @@ class DepthPipeline:
         return FrameResult(
             frame=frame,
             depth=depth,
-            flows_grid=flows,
+            flows_grid=fm.flows,
             log_ratio_grid=log_ratio,
             bands=result_bands,
             stride=cfg.stride,
             timings_ms=timings,
-            coverage=float(np.count_nonzero(np.isfinite(depth_grid)) / depth_grid.size),
+            coverage=float(counts_by_cause[cz.DEPTH] / causes.size),
+            depth_std=depth_std,
+            causes_grid=causes,
+            cause_counts=counts_by_cause,
+            leak_known=bool(cfg.crosstalk != "auto" or self._leak_known.all()),
+            warnings=self._warnings(counts_by_cause, grids, why),
         )
+
+    def _depth_and_slope(self, log_ratio: np.ndarray):
+        """Depth of each log ratio and ``|dz / dlog_ratio|`` from the LUT (NaN outside it)."""
+        eps = 1e-3
+        z_hi = lookup_depth(self.lut, log_ratio + eps)
+        z_lo = lookup_depth(self.lut, log_ratio - eps)
+        return 0.5 * (z_hi + z_lo), np.abs(z_hi - z_lo) / (2 * eps)
+
+    def _causes(self, bands, counts, grids, why, raw, log_ratio, depth_grid) -> np.ndarray:
+        """One :mod:`.causes` code per grid pixel: ``DEPTH`` or the first reason for none."""
+        gh, gw = self.grid_shape
+        per_pattern = np.empty((2, gh, gw), np.uint8)
+        for p in range(2):
+            reach = 0.5 * float(self._windows[p])  # about one line interval
+            cz.band_causes(bands[p], counts[p], self._rows_per_cell, self.config.stride, gw,
+                           reach, per_pattern[p])  # fmt: skip
+            # between valid bands (measured) the band stage let the cell through
+            per_pattern[p][np.isfinite(grids[p, 1])] = cz.DEPTH
+        no_lines = (per_pattern == cz.NO_LINES).any(axis=0)
+        band = np.where(per_pattern[0] != cz.DEPTH, per_pattern[0], per_pattern[1])
+        causes = np.where(band != cz.DEPTH, band, why)
+        causes[no_lines] = cz.NO_LINES
+        # dropped by the robust smoothing, or a ratio outside the working range
+        left = causes == cz.DEPTH
+        causes[left & np.isfinite(raw) & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
+        causes[left & np.isfinite(log_ratio) & ~np.isfinite(depth_grid)] = cz.DEPTH_RANGE
+        causes[left & ~np.isfinite(raw) & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
+        # holes filled by the smoothing have a depth whatever their own cause
+        causes[np.isfinite(depth_grid)] = cz.DEPTH
+        return causes
+
+    def _warnings(self, counts, grids, why) -> list[str]:
+        """Frame-level warnings: most pixels with lines out of the model's range."""
+        lit = int(counts.sum() - counts[cz.NO_LINES])
+        if lit == 0 or counts[cz.MODEL_RANGE] < 0.5 * lit:
+            return []
+        with np.errstate(invalid="ignore"):
+            widths = grids[:, 0][:, why == cz.MODEL_RANGE]
+        longest = float(np.nanmax(widths)) if np.isfinite(widths).any() else 0.0
+        share = 100.0 * counts[cz.MODEL_RANGE] / lit
+        if longest > L_AXIS[-1]:
+            return [f"{share:.0f} % of the lit pixels are out of the model's range: bands "
+                    f"longer than {L_AXIS[-1]:.0f} px: lower the exposure"]  # fmt: skip
+        return [f"{share:.0f} % of the lit pixels are out of the model's range: projected "
+                f"lines wider than the profile tables: use thinner lines or move the "
+                f"projector back"]  # fmt: skip
 
 
 def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.ndarray) -> BandSet:

@@ -56,7 +56,19 @@ class FrameResult:
     timings_ms : dict
         Time spent in each pipeline stage for this frame.
     coverage : float
-        Fraction of the camera pixels that got a depth.
+        Fraction of the analysis-grid pixels that got a depth ("depth on image").
+    depth_std : numpy.ndarray or None
+        ``(H, W)`` float32 predicted standard deviation of ``depth`` (metres),
+        NaN where there is no depth.
+    causes_grid : numpy.ndarray or None
+        uint8 :mod:`lightflow.app.causes` code per grid pixel: depth, or why not.
+    cause_counts : numpy.ndarray or None
+        Grid pixels per cause code (``len(CAUSES)`` counts).
+    leak_known : bool
+        Whether the colour leak between the patterns has been estimated yet
+        (until then it is taken as 0).
+    warnings : list of str
+        Frame-level warnings (for example most pixels out of the model's range).
     """
 
     frame: Frame
@@ -67,6 +79,11 @@ class FrameResult:
     stride: int
     timings_ms: dict[str, float] = field(default_factory=dict)
     coverage: float = 0.0
+    depth_std: np.ndarray | None = None
+    causes_grid: np.ndarray | None = None
+    cause_counts: np.ndarray | None = None
+    leak_known: bool = True
+    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass

@@ -28,6 +28,7 @@ from typing import Any
 
 from lightflow.app.results import FrameResult, RunStats
 from lightflow.app.sinks.background import BackgroundSink
+from lightflow.app.status import CAUSE_PREFIX
 
 #: end of stream marker passed down the queues (never dropped)
 _END = object()
@@ -186,6 +187,7 @@ class Runner:
         self.max_frames = max_frames
         self.count_gaps = count_gaps
         self.on_warning = on_warning
+        self._warned: set[str] = set()
         self._recorder_warned = False
         self.frames_q = DropOldestQueue(queue_size, lossless, "frames")
         self.results_q = DropOldestQueue(queue_size, lossless, "results")
@@ -348,6 +350,15 @@ class Runner:
                     f"the disk took {achieved:.0f} MiB/s so far ({rs['queued']} frames waiting)"
                 )
 
+    def _warn_once(self, text: str) -> None:
+        """Pass a frame's warning on the first time it is seen (the same text is not repeated)."""
+        key = text.split(":")[0]
+        if key in self._warned:
+            return
+        self._warned.add(key)
+        if self.on_warning is not None:
+            self.on_warning(text)
+
     def _update_drops(self) -> None:
         with self._lock:
             s = self._stats
@@ -403,8 +414,11 @@ class Runner:
                         fps = 1.0 / (now - last_done)
                         s.fps = fps if s.fps == 0 else _ema(s.fps, fps)
                     s.extra["coverage"] = float(result.coverage)
+                    _count_causes(s.extra, result)
                     snapshot = copy.deepcopy(s)
                 last_done = now
+                for text in result.warnings:
+                    self._warn_once(text)
                 for sink in self.sinks:
                     sink.write(result, snapshot)
                 if self.on_stats is not None:
@@ -430,6 +444,19 @@ class Runner:
                 sink.close()
             except BaseException as exc:  # noqa: BLE001 - every sink still gets closed
                 self._fail(exc)
+
+
+def _count_causes(extra: dict, result) -> None:
+    """Add one frame's pixels per cause (and its colour-leak state) to the run's stats."""
+    if result.cause_counts is None:
+        return
+    from .causes import CAUSE_NAMES
+
+    for name, n in zip(CAUSE_NAMES, result.cause_counts, strict=True):
+        key = CAUSE_PREFIX + name
+        extra[key] = extra.get(key, 0.0) + float(n)
+    if not result.leak_known:
+        extra["leak_unknown_frames"] = extra.get("leak_unknown_frames", 0.0) + 1.0
 
 
 def _ema(old: float, new: float) -> float:

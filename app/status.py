@@ -83,6 +83,19 @@ def format_summary(
             f"{DEPTH_ON_IMAGE} (share of all camera pixels with a depth, last frame): "
             f"{100 * stats.extra['coverage']:.1f}%"
         )
+    causes = no_depth_counts(stats.extra)
+    if causes is not None and causes.sum():
+        from .causes import describe_counts
+
+        lines.append(
+            f"no depth, by cause (share of all analysis-grid pixels, whole run): "
+            f"{describe_counts(causes, top=6)}"
+        )
+    if stats.extra.get("leak_unknown_frames"):
+        lines.append(
+            f"colour leak unknown on {int(stats.extra['leak_unknown_frames'])} frame(s) "
+            f"(no clean gaps between the patterns yet): taken as 0 there"
+        )
     for key, label in CAMERA_FIELDS:
         if stats.extra.get(key):
             lines.append(f"camera {label}: {int(stats.extra[key])}")
@@ -90,6 +103,21 @@ def format_summary(
         lines.append(f"{len(bad)} bad frame(s) skipped:")
         lines.extend(f"  {line}" for line in bad)
     return lines
+
+
+#: ``RunStats.extra`` key prefix of the grid pixels without depth, summed over a run
+CAUSE_PREFIX = "no_depth:"
+
+
+def no_depth_counts(extra: dict):
+    """Grid pixels per cause code summed over a run (``None`` before the first frame)."""
+    import numpy as np
+
+    from .causes import CAUSE_NAMES
+
+    if CAUSE_PREFIX + CAUSE_NAMES[0] not in extra:
+        return None
+    return np.array([extra.get(CAUSE_PREFIX + name, 0.0) for name in CAUSE_NAMES])
 
 
 class StatusLine:

@@ -17,15 +17,31 @@ Lost cameras: when no buffer arrives for ``lost_after_s`` seconds the driver
 asks the control channel directly (an uncached register read); if that fails
 or gets no answer within ``probe_timeout_s``,
 or Aravis has signalled ``control-lost`` (heartbeat failure), ``frames()``
-raises :class:`~lightflow.app.errors.DeviceLostError`.
+raises :class:`~lightflow.app.errors.DeviceLostError`.  Aravis alone would
+take much longer: a GigE Vision transaction to a dead camera fails only after
+5 tries of 500 ms (2.5 s), and its heartbeat thread retries for 5 s before it
+signals ``control-lost``; so the loss is reported after about
+``lost_after_s + probe_timeout_s`` (2 s by default), and the dead camera's
+objects are freed by a daemon thread that never keeps the process alive.
+
+Control held by another client: a GigE Vision camera obeys one controller at
+a time, and a client that died without releasing it (kill -9) keeps the
+camera until its heartbeat times out (GevHeartbeatTimeout, usually 3 s).
+Aravis opens such a camera without control (``arv_gv_device_take_control``
+failed, ``arv_gv_device_is_controller`` is false) and every write is refused.
+:meth:`AravisCamera.open` then says so on one line and retries
+``take_control`` until ``control_wait_s`` has passed, then raises a one-line
+:class:`~lightflow.app.errors.DriverError`.
 """
 
 from __future__ import annotations
 
 import collections
 import math
+import sys
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,6 +63,13 @@ POP_TIMEOUT_S = 0.1
 # Bootstrap register 0 (GigE Vision version / USB3 Vision GenCP version): every
 # camera has it and reading it is a real round trip, never served from a cache.
 _PROBE_REGISTER = 0x0000
+# GigE Vision bootstrap register of the heartbeat timeout (GevHeartbeatTimeout, ms).
+_HEARTBEAT_TIMEOUT_REGISTER = 0x0938
+#: seconds to wait for a camera whose control channel another client holds
+CONTROL_WAIT_S = 10.0
+# A camera does not announce that its control channel became free: take_control
+# is retried at this interval (a refusal comes back at once from a real camera).
+CONTROL_RETRY_S = 0.5
 
 #: Preferred pixel formats, best first: 8-bit colour (the rig's patterns are told
 #: apart by colour channel), then deeper colour, then monochrome.
@@ -249,6 +272,14 @@ class AravisCamera(Camera):
         Seconds without a buffer after which the control channel is checked.
     probe_timeout_s : float
         How long that check waits for the camera to answer.
+    control_wait_s : float
+        How long :meth:`open` waits for a GigE camera whose control channel
+        another client holds (a crashed program, until its heartbeat times
+        out).  The last attempt may end up to 2.5 s later (one GigE Vision
+        transaction with its retries).
+    notify : callable, optional
+        Receives the one-line notices (waiting for control, control taken);
+        by default they are printed on stderr.
 
     Only one thread iterates :meth:`frames`; :meth:`stop` may be called from any thread.
     """
@@ -263,6 +294,8 @@ class AravisCamera(Camera):
         buffer_s: float = BUFFER_SECONDS,
         max_buffer_mib: float = MAX_BUFFER_MIB,
         max_pending_mib: float = MAX_PENDING_MIB,
+        control_wait_s: float = CONTROL_WAIT_S,
+        notify: Callable[[str], None] | None = None,
     ) -> None:
         self.device = device
         self.uri = f"aravis:{device}"
@@ -283,6 +316,10 @@ class AravisCamera(Camera):
         self._discarded_at_stop = 0
         self.lost_after_s = float(lost_after_s)
         self.probe_timeout_s = float(probe_timeout_s)
+        if not control_wait_s >= 0:
+            raise DriverError(f"aravis:{device}: control wait must be >= 0 s, got {control_wait_s}")
+        self.control_wait_s = float(control_wait_s)
+        self.notify = notify if notify is not None else _print_notice
         self.pixel_format = ""
         self._cam: Any = None
         self._dev: Any = None
@@ -319,10 +356,65 @@ class AravisCamera(Camera):
         self._gone = False
         self._lost_handler = self._dev.connect("control-lost", self._on_control_lost)
         try:
+            if self._cam.is_gv_device() and not self._dev.is_controller():
+                self._wait_for_control()
             self._configure()
         except BaseException:
             self.close()
             raise
+
+    def _wait_for_control(self) -> None:
+        """Retry ``take_control`` until it succeeds or ``control_wait_s`` has passed.
+
+        Called when Aravis opened a GigE camera without its control channel:
+        another client holds it, typically one that died without releasing it,
+        which the camera frees when that client's heartbeat times out.
+        :meth:`stop` from another thread ends the wait early.
+
+        Raises
+        ------
+        DriverError
+            One line, when the deadline passes or the wait is stopped.
+        DeviceLostError
+            When the camera stops answering meanwhile.
+        """
+        dev = self._dev
+        try:
+            heartbeat = f"{dev.read_register(_HEARTBEAT_TIMEOUT_REGISTER) / 1e3:g} s"
+        except _glib_error():
+            heartbeat = "unknown"  # not every camera lets a non-controller read it
+        self.notify(
+            f"camera {self.uri} is controlled by another client (a crashed lightflow?); "
+            f"waiting up to {self.control_wait_s:g} s for its heartbeat ({heartbeat}) "
+            f"to time out ..."
+        )
+        self._stop.clear()
+        start = time.monotonic()
+        deadline = start + self.control_wait_s
+        while True:
+            try:
+                if dev.take_control():
+                    self.notify(f"camera {self.uri}: control taken after "
+                                f"{time.monotonic() - start:.1f} s")
+                    return
+            except _glib_error():
+                pass  # refused (access denied) or ignored (timeout): still held
+            try:
+                dev.read_register(_PROBE_REGISTER)  # refused, or gone?
+            except _glib_error() as exc:
+                self._gone = True
+                raise DeviceLostError(f"{self.uri}: camera stopped answering while waiting "
+                                      f"for control ({exc.message})") from None
+            left = deadline - time.monotonic()
+            if left <= 0 or self._stop.wait(min(CONTROL_RETRY_S, left)):
+                break
+        why = "stopped waiting" if self._stop.is_set() else (
+            f"still held after {self.control_wait_s:g} s")
+        raise DriverError(
+            f"{self.uri}: camera is controlled by another client ({why}, heartbeat timeout "
+            f"{heartbeat}); stop that program or power-cycle the camera, or wait longer "
+            f"(--control-wait)"
+        )
 
     def _configure(self) -> None:
         cam = self._cam
@@ -381,6 +473,9 @@ class AravisCamera(Camera):
         if self._cam is None:
             return
         dead = self._gone or self._control_lost.is_set()
+        # Without control (given up waiting for it) Aravis's goodbye write is refused,
+        # or ignored for seconds: free it in the background too.
+        slow = dead or (self._cam.is_gv_device() and not self._dev.is_controller())
         if self._stream is not None:
             self._last_stats = self._read_stats()
             if not dead:
@@ -392,7 +487,7 @@ class AravisCamera(Camera):
         owned = [self._probe, self._stream, self._dev, self._cam]
         self._probe = self._stream = self._dev = self._cam = None
         self.released.clear()
-        if dead:
+        if slow:
             # daemon: freeing a dead camera can take Aravis seconds of retries,
             # which must not keep the process alive after it has reported the loss
             threading.Thread(target=_release, args=(owned, self.released),
@@ -562,6 +657,10 @@ class AravisCamera(Camera):
             if self._acq_thread is not None:
                 self._acq_thread.join()  # it leaves within one pop timeout
                 self._acq_thread = None
+            with self._pending_cond:  # copied out after stop(), or never asked for
+                self._discarded_at_stop += len(self._pending)
+                self._pending.clear()
+                self._pending_bytes = 0
             self._end_stream()
             self._streaming_thread = None
             self._idle.set()
@@ -755,6 +854,10 @@ class AravisCamera(Camera):
         if self._stream is not None:
             return self._read_stats()
         return dict(self._last_stats)
+
+
+def _print_notice(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _release(owned: list, done: threading.Event) -> None:

@@ -49,7 +49,7 @@ def open_camera(uri: str, rig=None, **opts: Any) -> Camera:
     **opts
         Driver options; ``None`` values mean the driver default.  ``synthetic``:
         frames, fps, exposure_s, seed, realtime.  ``replay``: loop, realtime.
-        ``aravis``: pixel_format, n_buffers, lost_after_s, probe_timeout_s.
+        ``aravis``: pixel_format, n_buffers, lost_after_s, probe_timeout_s, control_wait_s.
         ``v4l2``: pixel_format, n_buffers.
 
     Returns
@@ -75,7 +75,8 @@ def open_camera(uri: str, rig=None, **opts: Any) -> Camera:
     if scheme == "aravis":
         from lightflow.drivers.aravis import AravisCamera
 
-        kw = _pick(opts, uri, ("pixel_format", "n_buffers", "lost_after_s", "probe_timeout_s"))
+        kw = _pick(opts, uri, ("pixel_format", "n_buffers", "lost_after_s", "probe_timeout_s",
+                               "control_wait_s"))
         return AravisCamera(target, **kw)
     if scheme == "v4l2":
         from lightflow.drivers.v4l2 import V4L2Camera

@@ -4,13 +4,25 @@ Built on the thin ioctl layer in :mod:`lightflow.drivers.v4l2_ioctl`; pass
 ``io=`` to swap the operating-system I/O (tests do, as no V4L2 device can exist
 on their machine).
 
-Buffer lifetime: the driver streams into a pool of mmap buffers.  A dequeued
-buffer's bytes are copied out before it is queued again, so a yielded image is
-never overwritten.
+Buffer lifetime: the driver streams into a pool of mmap buffers that holds
+about ``buffer_s`` seconds of frames (at least 4, capped by ``max_buffer_mib``;
+the kernel may grant fewer, uvcvideo at most 32).  One acquisition thread per
+camera owns the stream: it only dequeues a buffer (VIDIOC_DQBUF), copies its
+bytes out and queues it again (VIDIOC_QBUF), so the pool never starves however
+slow the consumer is, and a yielded image is never overwritten.  The copies
+wait in a memory-capped queue (``max_pending_mib``) for
+:meth:`V4L2Camera.frames`, which converts them on the consumer's thread.
+Nothing is lost silently; :meth:`V4L2Camera.stats` counts, by cause, frames
+dropped from that queue when the consumer fell behind by more than the cap
+(``dropped_in_driver``, the oldest go first), frames still queued when
+:meth:`V4L2Camera.stop` ended the stream (``discarded_at_stop``), gaps in the
+kernel's sequence numbers (``missing_frames``), error-flagged buffers
+(``failures``) and frames that could not be decoded (``bad_buffers``).
 """
 
 from __future__ import annotations
 
+import collections
 import errno
 import glob
 import math
@@ -30,9 +42,21 @@ from lightflow.drivers.base import Camera, Frame
 #: uncompressed (MJPG's block artefacts blur the lines the depth comes from).
 PREFERRED_FORMATS = ("RGB3", "YUYV", "MJPG")
 MIN_BUFFERS = 4
+#: seconds of frames the mmap buffer pool holds by default
+BUFFER_SECONDS = 1.0
+#: memory caps (MiB) of the buffer pool and of the queue of copied-out frames
+MAX_BUFFER_MIB = 512
+MAX_PENDING_MIB = 1024
+#: frame rate assumed when the device does not report one
+DEFAULT_FPS = 30.0
+# the acquisition thread's longest wait for a buffer: how soon it notices stop()
 WAIT_S = 0.1
 # Errors meaning the device node went away (unplugged, driver unbound).
 _GONE = {errno.ENODEV, errno.ENXIO, errno.EIO, errno.ESHUTDOWN}
+
+#: the counters of :meth:`V4L2Camera.stats`
+_COUNTS = ("delivered", "failures", "missing_frames", "dropped_in_driver", "discarded_at_stop",
+           "bad_buffers")
 
 PERMISSION_HINT = (
     "add your user to the 'video' group (sudo usermod -aG video $USER, then log in again) "
@@ -142,20 +166,33 @@ class V4L2Camera(Camera):
     pixel_format : str, optional
         ``RGB3``, ``YUYV`` or ``MJPG``; by default the first of
         :data:`PREFERRED_FORMATS` the device offers.
-    n_buffers : int
-        mmap buffers to request (at least 4).
+    n_buffers : int, optional
+        mmap buffers to request (at least 4).  By default the pool holds
+        ``buffer_s`` seconds of frames at the device's frame rate.
     io : DeviceIO, optional
         The operating-system I/O (default: the real one).
+    buffer_s : float
+        Seconds of frames in the default buffer pool.
+    max_buffer_mib, max_pending_mib : float
+        Memory caps of the buffer pool and of the queue of copied-out frames
+        waiting for the consumer.
 
     Only one thread iterates :meth:`frames`; :meth:`stop` may be called from any thread.
     """
 
-    def __init__(self, path: str, pixel_format: str | None = None, n_buffers: int = MIN_BUFFERS,
-                 io: v4l2.DeviceIO | None = None) -> None:
+    def __init__(self, path: str, pixel_format: str | None = None,
+                 n_buffers: int | None = None, io: v4l2.DeviceIO | None = None,
+                 buffer_s: float = BUFFER_SECONDS, max_buffer_mib: float = MAX_BUFFER_MIB,
+                 max_pending_mib: float = MAX_PENDING_MIB) -> None:
         self.path = path
         self.uri = f"v4l2:{path}"
         self.requested_format = pixel_format
-        self.n_buffers = max(MIN_BUFFERS, int(n_buffers))
+        self.n_buffers = None if n_buffers is None else max(MIN_BUFFERS, int(n_buffers))
+        self.buffer_s = float(buffer_s)
+        self.max_buffer_mib = float(max_buffer_mib)
+        self.max_pending_mib = float(max_pending_mib)
+        #: mmap buffers the kernel granted for the current (or last) stream
+        self.pool_size = 0
         self.pixel_format = ""
         self.card = ""
         self._io = io
@@ -163,8 +200,17 @@ class V4L2Camera(Camera):
         self._pix: v4l2.PixFormat | None = None
         self._maps: list = []
         self._stop = threading.Event()
+        self._idle = threading.Event()
+        self._idle.set()
+        self._streaming_thread: int | None = None
+        self._pending: collections.deque = collections.deque()
+        self._pending_bytes = 0
+        self._pending_cond = threading.Condition()
+        self._acq_done = False
+        self._acq_error: BaseException | None = None
+        self._acq_thread: threading.Thread | None = None
         self._exposure_s = float("nan")
-        self._counts = {"delivered": 0, "failures": 0, "missing_frames": 0}
+        self._counts = dict.fromkeys(_COUNTS, 0)
 
     # -- opening and closing -------------------------------------------------
 
@@ -238,7 +284,14 @@ class V4L2Camera(Camera):
 
     def close(self) -> None:
         """Stop streaming, unmap buffers and close the node (safe to call twice)."""
-        self._stop.set()
+        self.stop()
+        acquisition = self._acq_thread
+        if acquisition is not None and acquisition is not threading.current_thread():
+            acquisition.join()  # it leaves within WAIT_S; then nothing touches the buffers
+        if self._streaming_thread not in (None, threading.get_ident()):
+            # frames() runs in another thread: let it join its acquisition thread
+            # and free the buffers (it owns the stream)
+            self._idle.wait(timeout=WAIT_S * 50)
         self._end_stream()
         if self._dev is not None:
             self._dev.close()
@@ -353,15 +406,46 @@ class V4L2Camera(Camera):
     # -- streaming -----------------------------------------------------------
 
     def stop(self) -> None:
-        """Make a running :meth:`frames` end within about 0.1 s (thread-safe)."""
+        """Make a running :meth:`frames` end at once (thread-safe).
+
+        Frames copied out but not yet yielded are discarded and counted
+        (``discarded_at_stop``); the acquisition thread leaves within ``WAIT_S``.
+        """
         self._stop.set()
+        with self._pending_cond:
+            self._pending_cond.notify_all()
+
+    def _frame_rate(self) -> float:
+        """The device's frame rate from G_PARM, or DEFAULT_FPS if it does not say."""
+        try:
+            parm = self._dev.g_parm()
+        except OSError:
+            return DEFAULT_FPS
+        tpf = parm.timeperframe
+        if not parm.capability & v4l2.CAP_TIMEPERFRAME or not tpf.numerator or not tpf.denominator:
+            return DEFAULT_FPS
+        return tpf.denominator / tpf.numerator
+
+    def _pool_request(self) -> int:
+        """Buffers for ``buffer_s`` seconds of frames, at least 4, within ``max_buffer_mib``."""
+        if self.n_buffers is not None:
+            return self.n_buffers
+        size = self._pix.sizeimage or self._pix.bytesperline * self._pix.height
+        cap = int(self.max_buffer_mib * 2**20 // max(1, size))
+        return max(MIN_BUFFERS, min(math.ceil(self._frame_rate() * self.buffer_s), cap))
 
     def _start_stream(self) -> None:
         dev = self._dev
+        with self._pending_cond:
+            self._pending.clear()
+            self._pending_bytes = 0
+            self._acq_done = False
+            self._acq_error = None
         try:
-            count = dev.reqbufs(self.n_buffers)
+            count = dev.reqbufs(self._pool_request())
             if count < 2:
                 raise DriverError(f"{self.uri}: device gave {count} buffers, need at least 2")
+            self.pool_size = count
             for index in range(count):
                 self._maps.append(dev.mmap(dev.querybuf(index)))
                 dev.qbuf(index)
@@ -372,64 +456,137 @@ class V4L2Camera(Camera):
     def _end_stream(self) -> None:
         if not self._maps or self._dev is None:
             return
+        try:
+            self._dev.streamoff()
+        except OSError:
+            pass  # the device may be gone; closing the node frees the buffers anyway
         for m in self._maps:
             m.close()
         self._maps = []
         try:
-            self._dev.streamoff()
             self._dev.reqbufs(0)
         except OSError:
-            pass  # the device may be gone; closing the node frees the buffers anyway
+            pass
 
     def frames(self) -> Iterator[Frame]:
         """Stream frames until :meth:`stop` or :meth:`close`.
 
-        Buffers flagged with an error are counted in :meth:`stats` and skipped.
+        Buffers flagged with an error, and frames that cannot be decoded, are
+        counted in :meth:`stats` and skipped.
 
         Raises
         ------
         DeviceLostError
-            When the device disappears mid-stream.
+            When the device disappears mid-stream (after the frames already
+            copied out have been yielded).
         """
         if self._dev is None:
             raise DriverError(f"{self.uri}: camera is not open")
         self._stop.clear()
-        self._counts = dict.fromkeys(self._counts, 0)
-        self._start_stream()
+        self._idle.clear()
+        self._streaming_thread = threading.get_ident()
+        self._counts = dict.fromkeys(_COUNTS, 0)
         try:
-            yield from self._dequeue_loop()
+            self._start_stream()
+            self._acq_thread = threading.Thread(
+                target=self._acquire, name=f"{self.uri} acquisition", daemon=True
+            )
+            self._acq_thread.start()
+            yield from self._deliver()
         finally:
+            self._stop.set()
+            if self._acq_thread is not None:
+                self._acq_thread.join()  # it leaves within WAIT_S
+                self._acq_thread = None
+            with self._pending_cond:  # copied out after stop(), or never asked for
+                self._counts["discarded_at_stop"] += len(self._pending)
+                self._pending.clear()
+                self._pending_bytes = 0
             self._end_stream()
+            self._streaming_thread = None
+            self._idle.set()
 
-    def _dequeue_loop(self) -> Iterator[Frame]:
-        dev = self._dev
-        width, height = self.size
-        stride = self._pix.bytesperline
-        last_seq = None
-        while not self._stop.is_set():
-            try:
+    def _acquire(self) -> None:
+        """The acquisition thread: dequeue, copy out, queue again; nothing else."""
+        try:
+            dev = self._dev
+            cap = self.max_pending_mib * 2**20
+            last_seq = None
+            while not self._stop.is_set():
                 if not dev.wait_readable(WAIT_S):
                     continue
                 buf = dev.dqbuf()
                 if buf is None:
                     continue
-                # Copy out before the buffer goes back to the driver.
-                data = bytes(self._maps[buf.index][: buf.bytesused])
-                dev.qbuf(buf.index)
-            except OSError as exc:
-                raise self._fail("dequeue", exc) from None
-            if last_seq is not None and buf.sequence > last_seq + 1:
-                self._counts["missing_frames"] += buf.sequence - last_seq - 1
-            last_seq = buf.sequence
-            if buf.flags & v4l2.BUF_FLAG_ERROR:
-                self._counts["failures"] += 1
+                try:
+                    if last_seq is not None and buf.sequence > last_seq + 1:
+                        self._counts["missing_frames"] += buf.sequence - last_seq - 1
+                    last_seq = buf.sequence
+                    if buf.flags & v4l2.BUF_FLAG_ERROR:
+                        self._counts["failures"] += 1
+                        continue
+                    # bytes(): a copy that stays ours once the buffer is queued again
+                    stamp = buf.timestamp.tv_sec + buf.timestamp.tv_usec * 1e-6
+                    item = (buf.sequence, bytes(self._maps[buf.index][: buf.bytesused]), stamp)
+                finally:
+                    dev.qbuf(buf.index)
+                with self._pending_cond:
+                    self._pending.append(item)
+                    self._pending_bytes += len(item[1])
+                    while self._pending_bytes > cap and len(self._pending) > 1:
+                        old = self._pending.popleft()
+                        self._pending_bytes -= len(old[1])
+                        self._counts["dropped_in_driver"] += 1
+                    self._pending_cond.notify_all()
+        except OSError as exc:
+            self._acq_error = self._fail("dequeue", exc)
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer in _deliver
+            self._acq_error = exc
+        finally:
+            with self._pending_cond:
+                self._acq_done = True
+                self._pending_cond.notify_all()
+
+    def _deliver(self) -> Iterator[Frame]:
+        """Convert and yield the copied-out frames, on the consumer's thread."""
+        width, height = self.size
+        stride = self._pix.bytesperline
+        while True:
+            with self._pending_cond:
+                while not self._pending and not self._acq_done and not self._stop.is_set():
+                    self._pending_cond.wait()
+                if self._stop.is_set():
+                    # stop() ends the stream now; what was still waiting is counted
+                    self._counts["discarded_at_stop"] += len(self._pending)
+                    self._pending.clear()
+                    self._pending_bytes = 0
+                    return
+                if self._pending:
+                    sequence, data, stamp = self._pending.popleft()
+                    self._pending_bytes -= len(data)
+                elif self._acq_error is not None:
+                    error, self._acq_error = self._acq_error, None
+                    raise error
+                else:
+                    return
+            try:
+                image = convert_frame(data, self.pixel_format, width, height, stride)
+            except DriverError:
+                self._counts["bad_buffers"] += 1  # e.g. a truncated MJPG frame
                 continue
-            image = convert_frame(data, self.pixel_format, width, height, stride)
             self._counts["delivered"] += 1
-            stamp = buf.timestamp.tv_sec + buf.timestamp.tv_usec * 1e-6
             exposure = self._exposure_s if not math.isnan(self._exposure_s) else 0.0
-            yield Frame(index=buf.sequence, timestamp=stamp, exposure_s=exposure, image=image)
+            yield Frame(index=sequence, timestamp=stamp, exposure_s=exposure, image=image)
 
     def stats(self) -> dict[str, float]:
-        """Counts: ``delivered``, ``failures`` (error-flagged), ``missing_frames`` (gaps)."""
-        return {k: float(v) for k, v in self._counts.items()}
+        """Frame counts by cause, and ``buffers`` (the mmap pool the kernel granted).
+
+        ``delivered``; ``failures`` (error-flagged buffers); ``missing_frames``
+        (gaps in the kernel's sequence numbers); ``dropped_in_driver`` (the
+        consumer fell behind by more than ``max_pending_mib``);
+        ``discarded_at_stop``; ``bad_buffers`` (frames that could not be
+        decoded).  Kept after streaming ends.
+        """
+        out = {k: float(v) for k, v in self._counts.items()}
+        out["buffers"] = float(self.pool_size)
+        return out

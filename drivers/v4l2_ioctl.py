@@ -11,6 +11,18 @@ Layers, bottom up (as in linuxpy):
 3. :class:`lightflow.drivers.v4l2.V4L2Camera` — the camera on top.
 
 Struct layouts are those of ``linux/videodev2.h`` on 64-bit Linux.
+
+Why not linuxpy itself (checked with linuxpy 0.25.0): its ``Device`` takes an
+``io`` object, but that object only supplies ``open``, ``os`` and ``select``
+(``linuxpy/io.py``, class ``IO``).  Every ioctl goes through the module
+function ``linuxpy.ioctl.ioctl``, which calls ``fcntl.ioctl`` on the real file
+descriptor, and buffers are mapped with ``mmap.mmap`` on it
+(``linuxpy/video/device.py``, ``mem_map``).  A test without a V4L2 device can
+only fake those by patching linuxpy's module internals, which is what
+linuxpy's own tests do (``mock.patch("linuxpy.ioctl.fcntl.ioctl", ...)``,
+``mock.patch("linuxpy.video.device.mmap.mmap", ...)`` in
+``tests/test_video.py``).  This layer keeps the I/O object that covers all
+five operations, so tests swap it without patching anything.
 """
 
 from __future__ import annotations

@@ -12,6 +12,12 @@ Run as a program it is the simulator itself::
     python tests/aravis_sim.py --interface lo --serial GV01
 
 It prints ``ready`` on stdout once the camera answers, and stops on SIGTERM.
+
+With ``--hold ADDRESS`` it is instead a second client that takes the camera's
+control channel and keeps it (Aravis's heartbeat) until it is killed: a
+crashed lightflow, once :meth:`Holder.kill` sends it SIGKILL.  It talks from
+``127.0.0.2``, because the simulator tells clients apart by IP address only,
+and every client on ``127.0.0.1`` would be the same controller to it.
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ import sys
 import threading
 
 SIM_ADDRESS = "127.0.0.1"
+#: the other client's address (all of 127.0.0.0/8 is local to ``lo`` on Linux)
+HOLDER_ADDRESS = "127.0.0.2"
 READY_TIMEOUT_S = 10.0
 SIOCGIFFLAGS = 0x8913
 IFF_UP = 0x1
@@ -107,6 +115,64 @@ class Simulator:
         self.stop()
 
 
+class Holder:
+    """Another client in a child process that holds the simulator's control channel.
+
+    Use as a context manager; :meth:`kill` (SIGKILL) leaves the camera
+    controlled by a dead client until its heartbeat times out.
+    """
+
+    def __init__(self, device: str = SIM_ADDRESS) -> None:
+        self.device = device
+        self.proc: subprocess.Popen[str] | None = None
+
+    def start(self) -> None:
+        cmd = [sys.executable, __file__, "--hold", self.device, "--source", HOLDER_ADDRESS]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+        watchdog = threading.Timer(READY_TIMEOUT_S, self.proc.kill)
+        watchdog.start()
+        try:
+            line = self.proc.stdout.readline().strip()
+        finally:
+            watchdog.cancel()
+        if line != "holding":
+            self.kill()
+            raise RuntimeError(f"the second client did not take control (said {line!r})")
+
+    def kill(self) -> None:
+        """SIGKILL: the client dies without releasing control, as after kill -9."""
+        if self.proc is not None:
+            if self.proc.poll() is None:
+                self.proc.kill()
+            self.proc.wait(timeout=10)
+            self.proc.stdout.close()
+            self.proc = None
+
+    def __enter__(self) -> Holder:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.kill()
+
+
+def _hold(device: str, source: str) -> int:
+    import gi
+
+    gi.require_version("Aravis", "0.8")
+    from gi.repository import Aravis, Gio
+
+    # Opening a GvDevice takes control and starts its heartbeat thread.
+    dev = Aravis.GvDevice.new(Gio.InetAddress.new_from_string(source),
+                              Gio.InetAddress.new_from_string(device))
+    if not dev.is_controller():
+        print("not controller", flush=True)
+        return 1
+    print("holding", flush=True)
+    threading.Event().wait()  # until killed
+    return 0
+
+
 def _serve(interface: str, serial: str) -> int:
     import gi
 
@@ -129,5 +195,9 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--interface", default="lo")
     parser.add_argument("--serial", default="GV01")
+    parser.add_argument("--hold", metavar="ADDRESS", help="be a client holding this camera")
+    parser.add_argument("--source", default=HOLDER_ADDRESS, help="the holding client's address")
     args = parser.parse_args()
+    if args.hold:
+        sys.exit(_hold(args.hold, args.source))
     sys.exit(_serve(args.interface, args.serial))

@@ -6,14 +6,19 @@ discovery broadcasts, and nothing may leave this machine.
 
 from __future__ import annotations
 
+import os
+import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 
 import cv2
 import numpy as np
 import pytest
-from aravis_sim import SIM_ADDRESS
+from aravis_sim import SIM_ADDRESS, Holder
+from bench_capture import scaled_rig
 
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers.aravis import (
@@ -156,6 +161,101 @@ def test_camera_lost_mid_stream(sim):
     # The dead camera's objects are freed in the background once Aravis gives
     # up on its control channel (it retries for several seconds).
     assert cam.released.wait(timeout=20.0)
+
+
+# -- a camera held by another client (a crashed lightflow) ----------------------
+
+WAITING = (f"camera aravis:{SIM_ADDRESS} is controlled by another client (a crashed lightflow?); "
+           f"waiting up to {{}} s for its heartbeat (3 s) to time out ...")
+
+
+def test_waits_for_control_of_a_crashed_client(sim):
+    """The camera is held by a client that is killed -9 once the driver says it waits."""
+    with Holder() as holder:
+        notices = []
+
+        def notify(line: str) -> None:
+            notices.append(line)
+            if len(notices) == 1:
+                holder.kill()  # the holder dies without releasing control
+
+        with AravisCamera(SIM_ADDRESS, pixel_format="Mono8", control_wait_s=30,
+                          notify=notify) as cam:
+            frames = []
+            for frame in cam.frames():
+                frames.append(frame.index)
+                if len(frames) == 5:
+                    cam.stop()
+    assert notices[0] == WAITING.format(30)
+    assert notices[1].startswith(f"camera aravis:{SIM_ADDRESS}: control taken after ")
+    assert len(notices) == 2
+    assert frames == list(range(frames[0], frames[0] + 5))
+
+
+def test_gives_up_on_a_camera_another_client_holds(sim):
+    with Holder():
+        notices = []
+        cam = AravisCamera(SIM_ADDRESS, control_wait_s=0.5, notify=notices.append)
+        with pytest.raises(DriverError) as info:
+            cam.open()
+        # Aravis's goodbye (leave control) is ignored by the simulator for 2.5 s: it runs
+        # in the background; wait for it before the next test opens a simulator
+        assert cam.released.wait(timeout=20.0)
+    assert notices == [WAITING.format(0.5)]
+    assert str(info.value) == (
+        f"aravis:{SIM_ADDRESS}: camera is controlled by another client (still held after 0.5 s, "
+        f"heartbeat timeout 3 s); stop that program or power-cycle the camera, or wait longer "
+        f"(--control-wait)")
+
+
+@pytest.fixture(scope="module")
+def sim_rig_file(tmp_path_factory):
+    return scaled_rig(512, 512, tmp_path_factory.mktemp("simrig") / "rig.json")
+
+
+def _capture(rig, *args: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "lightflow.app.cli", "capture", "--camera",
+           f"aravis:{SIM_ADDRESS}", "--rig", str(rig), "--exposure", "4", *args]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONWARNINGS="error"))
+
+
+def test_capture_after_a_crashed_capture(sim, sim_rig_file, tmp_path):
+    """`lightflow capture` says it waits, and gets the camera once the holder's heartbeat ends."""
+    rec = tmp_path / "rec"
+    with Holder() as holder:
+        proc = _capture(sim_rig_file, "--frames", "20", "--record", str(rec), "--lossless",
+                        "--control-wait", "60")
+        watchdog = threading.Timer(120, proc.kill)  # bounds the wait for its first line
+        watchdog.start()
+        try:
+            waiting = proc.stderr.readline()
+            holder.kill()  # kill -9 while the capture waits for control
+            out, err = proc.communicate(timeout=120)
+        finally:
+            watchdog.cancel()
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert waiting == WAITING.format(60) + "\n"
+    assert proc.returncode == 0, err
+    assert err.startswith(f"camera aravis:{SIM_ADDRESS}: control taken after "), err
+    assert re.search(r"processed \d+ of 20 frames", err), err
+    assert f"recording: 20 frames in {rec}" in out
+    assert "Traceback" not in err
+
+
+def test_capture_gives_up_with_one_line(sim, sim_rig_file):
+    with Holder():
+        proc = _capture(sim_rig_file, "--frames", "5", "--control-wait", "1")
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert err.splitlines() == [
+        WAITING.format(1),
+        f"lightflow: error: aravis:{SIM_ADDRESS}: camera is controlled by another client (still "
+        f"held after 1 s, heartbeat timeout 3 s); stop that program or power-cycle the camera, or "
+        f"wait longer (--control-wait)",
+    ]
 
 
 def test_list_devices_finds_simulator(sim):

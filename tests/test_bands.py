@@ -80,7 +80,7 @@ def render_and_detect(L, w, sigma, interval, phase, count=8):
     assert all(len(m) == 1 for m in match), f"lines at {c} -> bands at {centre}"
     idx = np.concatenate(match)
     extra = np.setdiff1d(np.arange(len(b)), idx)
-    assert np.all(b[extra, F_VALID] == 0.0)
+    assert np.all(b[extra, F_VALID] <= 0.0)
     b = b[idx]
     assert np.allclose(b[:, F_CENTRE], c, atol=0.05)
     return b
@@ -295,7 +295,7 @@ def test_band_cut_by_hard_edge_is_invalid(cut):
     assert abs(cut_band[F_CENTRE] - c[k]) < L / 2
     print(f"\ncut at centre{cut * L:+.0f} px: cut band m={cut_band[F_LENGTH]:.2f} "
           f"valid={cut_band[F_VALID]:.0f}")  # fmt: skip
-    assert cut_band[F_VALID] == 0.0
+    assert cut_band[F_VALID] <= 0.0
 
 
 def test_band_with_dip_in_plateau_is_invalid():
@@ -308,7 +308,7 @@ def test_band_with_dip_in_plateau_is_invalid():
     b = detect_row(v, B)
     near = np.abs(b[:, F_CENTRE] - c[k]) < L / 2
     assert near.any()
-    assert np.all(b[near, F_VALID] == 0.0)
+    assert np.all(b[near, F_VALID] <= 0.0)
     far = np.abs(b[:, F_CENTRE] - c[k]) > 1.5 * B
     assert far.sum() == len(c) - 3
     assert np.all(b[far, F_VALID] == 1.0)

@@ -75,7 +75,7 @@ def sequential_depths(rec: Path, config: PipelineConfig) -> dict[str, np.ndarray
 
 
 def assert_depths_equal(out: Path, expected: dict[str, np.ndarray]) -> None:
-    files = sorted(p.stem for p in out.glob("*.npy"))
+    files = sorted(p.stem for p in out.glob("*.npy") if not p.stem.endswith("_std"))
     assert files == sorted(expected)
     for stem, depth in expected.items():
         got = np.load(out / f"{stem}.npy")
@@ -109,7 +109,8 @@ def test_batch_of_four_equals_sequential_replay(recordings, expected, client, tm
     assert set(info) == {r.name for r in recordings}
     e = info["rec1"]
     assert e["status"] == "complete" and e["frames"] == e["frames_done"] == FRAMES + 1
-    assert e["bad_frames"] == [] and e["timings"]["bytes_out"] == (FRAMES + 1) * (
+    # per frame: the depth map and its predicted standard deviation
+    assert e["bad_frames"] == [] and e["timings"]["bytes_out"] == 2 * (FRAMES + 1) * (
         300 * 400 * 4 + 128
     )
 
@@ -148,7 +149,7 @@ def test_cli_on_a_running_scheduler_equals_lightflow_replay(recordings, client, 
     assert f"1 of 1 recordings complete, {FRAMES + 3} frames, 5 tasks run" in stdout
     assert main(["replay", str(recordings[3]), "--export-depth", str(replayed)]) == 0
     capsys.readouterr()
-    expected = {p.stem: np.load(p) for p in replayed.glob("*.npy")}
+    expected = {p.stem: np.load(p) for p in replayed.glob("*.npy") if not p.stem.endswith("_std")}
     assert len(expected) == FRAMES + 3
     assert_depths_equal(out / "rec3", expected)
 
@@ -202,10 +203,10 @@ def test_cli_corrupt_recording_one_line_others_complete(recordings, tmp_path, ca
     assert "Traceback" not in err
     info = json.loads((out / "batch.json").read_text())["recordings"]
     assert info["good"]["status"] == info["damaged"]["status"] == "complete"
-    assert sorted(p.name for p in (out / "good").glob("*.npy")) == [
+    assert sorted(p.name for p in (out / "good").glob("*.npy") if "_std" not in p.name) == [
         f"{i:06d}.npy" for i in range(4)
     ]
-    assert sorted(p.name for p in (out / "damaged").glob("*.npy")) == [
+    assert sorted(p.name for p in (out / "damaged").glob("*.npy") if "_std" not in p.name) == [
         "000000.npy", "000001.npy", "000003.npy"
     ]
     assert info["damaged"]["frames_done"] == 3

@@ -41,11 +41,19 @@ def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
                    "--rrd", str(rrd), "--compress"])  # fmt: skip
     out, err = capsys.readouterr()
     assert status == 0, err
-    files = sorted(p.name for p in depth_dir.iterdir())
-    assert files == [f"{i:06d}.npy" for i in range(N_FRAMES)]
+    names = sorted(p.name for p in depth_dir.iterdir())
+    assert names == sorted([f"{i:06d}.npy" for i in range(N_FRAMES)]
+                           + [f"{i:06d}_std.npy" for i in range(N_FRAMES)])  # fmt: skip
+    files = [n for n in names if not n.endswith("_std.npy")]
     for f in files:
         depth = np.load(depth_dir / f)
+        std = np.load(depth_dir / f.replace(".npy", "_std.npy"))
         assert depth.shape == (300, 400) and depth.dtype == np.float32
+        assert std.shape == depth.shape and std.dtype == np.float32
+        # a predicted error exactly where there is a depth, positive and below 3 % of it
+        assert np.array_equal(np.isfinite(std), np.isfinite(depth))
+        ok = np.isfinite(depth)
+        assert np.all(std[ok] > 0) and np.all(std[ok] <= 0.031 * depth[ok])
     # the board is 0.6-0.9 m away: whatever got a depth must be near that
     depth = np.load(depth_dir / files[-1])
     finite = depth[np.isfinite(depth)]
@@ -57,7 +65,7 @@ def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
             frames.update(rb.column("frame").to_pylist())
     assert frames == set(range(N_FRAMES))
     assert f"processed {N_FRAMES} of {N_FRAMES} frames" in err
-    assert f"depth maps: {N_FRAMES} files in {depth_dir}/" in out
+    assert f"depth maps: {N_FRAMES} frames in {depth_dir}/" in out
     assert f"open with `rerun {rrd}`" in out
 
 
@@ -69,7 +77,8 @@ def test_replay_processes_good_frames_lists_bad_ones_exit_2(recording, tmp_path,
     assert status == 2, err
     assert "Traceback" not in err
     assert f"lightflow: error: 1 of {N_FRAMES} frames could not be replayed" in err
-    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["000000.npy", "000002.npy"]
+    assert sorted(p.name for p in (tmp_path / "d").glob("*.npy")
+                  if not p.stem.endswith("_std")) == ["000000.npy", "000002.npy"]
     assert "bad frames 1" in err
     assert "000001.png: frame file missing (listed as frames[1])" in err
 
@@ -156,7 +165,9 @@ def test_replay_full_disk_is_one_line_exit_2_and_no_partial_files(
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("lightflow: error:")]
     suffix = "npy" if option == "--export-depth" else "ply"
     assert len(errors) == 1
-    assert errors[0].startswith(f"lightflow: error: {out}/000000.{suffix}: cannot write: ")
+    # (the depth export writes 000000_std.npy, then 000000.npy)
+    assert errors[0].startswith(f"lightflow: error: {out}/000000")
+    assert f".{suffix}: cannot write: " in errors[0]
     # the OS says EFBIG, or Python's buffered writer reports the short write
     assert errors[0].endswith(("File too large", "written)")), errors[0]
     assert list(out.iterdir()) == []  # complete files only: no partial file, no .tmp
@@ -176,4 +187,5 @@ def test_replay_with_a_bad_frame_exits_2_as_help_says(recording, tmp_path, capsy
     assert main(["replay", str(rec), "--export-depth", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err
     assert "1 of 3 frames could not be replayed" in err
-    assert sorted(p.name for p in (tmp_path / "d").iterdir()) == ["000000.npy", "000002.npy"]
+    assert sorted(p.name for p in (tmp_path / "d").glob("*.npy")
+                  if not p.stem.endswith("_std")) == ["000000.npy", "000002.npy"]

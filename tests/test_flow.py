@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from lightflow.app import causes
 from lightflow.app.flow import FlowModel, FlowParams
 from lightflow.app.rig import resolve_rig
 
@@ -19,7 +20,8 @@ def test_flows_and_log_ratio_from_long_bands():
     model.blur[:] = (0.3, 0.0)  # a known, small blur: long bands need no correction
     (_, pat1), (_, pat2) = rig.patterns
     # bands three times longer than their line: the width at half height is the sweep
-    log_ratio, flows, _ = model.combine(_grids((16.0, 20.0), (60.0, 40.0)), FlowParams())
+    out = model.combine(_grids((16.0, 20.0), (60.0, 40.0)), FlowParams())
+    log_ratio, flows = out.log_ratio, out.flows
     assert np.allclose(flows[0], 16.0 / 60.0 * pat1.pitch_px, rtol=2e-3)
     assert np.allclose(flows[1], 20.0 / 40.0 * pat2.pitch_px, rtol=2e-3)
     assert np.allclose(log_ratio, np.log(16.0 / 60.0) - np.log(20.0 / 40.0), atol=3e-3)
@@ -30,12 +32,15 @@ def test_static_and_overlapping_bands_give_no_flow():
     model = FlowModel(rig)
     model.blur[:] = (0.3, 0.0)
     # pattern 2: 3 px lines at 18 px pitch seen with B = 36 px are 6 px wide
-    static, _, _ = model.combine(_grids((16.0, 6.3), (60.0, 36.0)), FlowParams())
-    assert np.isnan(static).all()
-    overlapping, _, _ = model.combine(_grids((16.0, 30.0), (60.0, 36.0)), FlowParams())
-    assert np.isnan(overlapping).all()
-    fine, _, _ = model.combine(_grids((16.0, 14.0), (60.0, 36.0)), FlowParams())
-    assert np.isfinite(fine).all()
+    static = model.combine(_grids((16.0, 6.3), (60.0, 36.0)), FlowParams())
+    assert np.isnan(static.log_ratio).all()
+    assert (static.why == causes.STATIC).all()
+    overlapping = model.combine(_grids((16.0, 30.0), (60.0, 36.0)), FlowParams())
+    assert np.isnan(overlapping.log_ratio).all()
+    assert (overlapping.why == causes.OVERLAP).all()
+    fine = model.combine(_grids((16.0, 14.0), (60.0, 36.0)), FlowParams())
+    assert np.isfinite(fine.log_ratio).all()
+    assert (fine.why == causes.DEPTH).all()
 
 
 def test_bands_longer_than_the_tables_are_measured():
@@ -45,6 +50,7 @@ def test_bands_longer_than_the_tables_are_measured():
     model.blur[:] = (0.5, 0.2)
     (_, pat1), (_, pat2) = rig.patterns
     for m in (47.5, 49.0, 60.0, 90.0):
-        log_ratio, flows, _ = model.combine(_grids((m, 20.0), (200.0, 40.0)), FlowParams())
+        out = model.combine(_grids((m, 20.0), (200.0, 40.0)), FlowParams())
+        log_ratio, flows = out.log_ratio, out.flows
         assert np.allclose(flows[0], m / 200.0 * pat1.pitch_px, rtol=2e-3)
         assert np.allclose(log_ratio, np.log(m / 200.0) - np.log(20.0 / 40.0), atol=3e-3)

@@ -109,8 +109,9 @@ def test_fan_static_wall_gets_no_depth(rig2):
     s = scores(rig2, truth, result, "fan, two-projector, nominal exposure")
     wall = truth.object_id == 1
     assert wall.mean() > 0.5  # most of the image is the static wall
-    # the blades are measured at all, so that the check below is not vacuous
-    assert s["depth_px"] - s["off_object_px"] > 5000
+    # the blades are measured at all, so that the check below is not vacuous (3520 px
+    # measured: the uncertain blade tips get none)
+    assert s["depth_px"] - s["off_object_px"] > 2500
     assert s["off_fraction"] <= 0.02
 
 
@@ -239,13 +240,54 @@ def test_tilted_board_moving_diagonally_unbiased_on_an_unseen_rig():
 def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     """Fan at the paper's 1 ms on a rig with a projector in front of the camera plane.
 
-    Measured here: median 6.8 mm, signed +6.5 mm, coverage 0.26 (before the blur fit
-    from short bands and the joint width/ramp sweeps: 16.6 mm, signed +16.6 mm).
+    Measured here: median 3.3 mm, signed +2.0 mm, coverage 0.175 (before pixels with a
+    predicted error over 3 % of the depth got none: 6.8 mm, +6.5 mm, 0.26; before the blur
+    fit from short bands and the joint width/ramp sweeps: 16.6 mm, signed +16.6 mm).
     """
     rig = _generated_rig(((-0.25, 0.0, 0.35), 35, 1200, 36), ((0.42, 0.02, -0.20), 16, 1500, 16),
                          crop=(640, 640, 960, 280))  # fmt: skip
     s = _signed_scores(rig, "fan", 0.001)
-    assert s["median_mm"] <= 12.0
-    assert abs(s["signed_mm"]) <= 12.0
-    assert s["coverage"] >= 0.2
+    assert s["median_mm"] <= 8.0
+    assert abs(s["signed_mm"]) <= 8.0
+    assert s["coverage"] >= 0.14
     assert s["off_fraction"] <= 0.02
+
+
+def _within_sigma(truth, result):
+    on = (np.isfinite(result.depth) & (truth.object_id >= 2) & np.isfinite(truth.depth)
+          & np.isfinite(result.depth_std))  # fmt: skip
+    err = np.abs(result.depth[on] - truth.depth[on])
+    sd = result.depth_std[on]
+    return float(np.mean(err <= sd)), float(np.mean(err <= 2 * sd)), int(on.sum())
+
+
+def test_predicted_uncertainty_matches_the_errors(board_two_projector):
+    """About 68 % of the depth errors lie within the predicted sigma, 95 % within 2 sigma."""
+    truth, result = board_two_projector[-1]
+    one, two, n = _within_sigma(truth, result)
+    print(f"\nboard: {100 * one:.0f} % within 1 sigma, {100 * two:.0f} % within 2 sigma "
+          f"({n} px), median sigma {1e3 * np.nanmedian(result.depth_std):.1f} mm")  # fmt: skip
+    assert n > 10000
+    assert 0.55 <= one <= 0.9
+    assert two >= 0.85
+    assert result.depth_std.dtype == np.float32
+    assert np.array_equal(np.isfinite(result.depth_std), np.isfinite(result.depth))
+
+
+def test_every_grid_pixel_has_one_cause(rig2):
+    """Fan before a static wall: every pixel without depth is counted under one cause."""
+    from lightflow.app import causes
+
+    ((truth, result),) = run(rig2, "fan", frames=1)
+    counts = result.cause_counts
+    assert counts.sum() == result.causes_grid.size
+    assert counts[causes.DEPTH] == np.count_nonzero(np.isfinite(result.log_ratio_grid)
+                                                    & (result.causes_grid == causes.DEPTH))
+    s = STRIDE
+    wall = truth.object_id[s // 2::s, s // 2::s] == 1
+    wall_causes = causes.count_causes(result.causes_grid[: wall.shape[0], : wall.shape[1]][wall])
+    print("\nfan, wall pixels by cause: " + causes.describe_counts(wall_causes))
+    # measured: faint 42 % (the wall's lines in the blades' shadow and at its far side),
+    # static 35 %, irregular 10 %, overlap 7 %
+    assert wall_causes[causes.DEPTH] <= 0.02 * wall_causes.sum()
+    assert wall_causes[[causes.STATIC, causes.FAINT]].sum() > 0.6 * wall_causes.sum()

@@ -6,6 +6,7 @@ import ctypes
 import errno
 import mmap
 import threading
+import time
 from collections import deque
 
 import cv2
@@ -53,7 +54,15 @@ class FakeV4L2IO:
     ENODEV once unplugged), so that V4L2Camera's real format negotiation,
     controls, buffer queue and conversions run.  Frames are ``image`` encoded in
     the negotiated format, in anonymous mmaps standing in for the driver's.
+
+    Like a real device it has a clock: once streaming, frame ``k`` is due at
+    ``k`` frame periods after STREAMON.  A frame fills the oldest queued buffer;
+    with no buffer queued it is lost (``lost_frames``) and its sequence number
+    skipped, as a kernel driver does when the application starves it.
     """
+
+    #: most buffers REQBUFS grants (the kernel's VIDEO_MAX_FRAME; uvcvideo's limit)
+    MAX_BUFFERS = 32
 
     def __init__(self, image: np.ndarray, formats=("YUYV", "MJPG", "RGB3"),
                  sizes=((640, 480), (320, 240)), row_padding: int = 0, path="/dev/video0",
@@ -72,11 +81,18 @@ class FakeV4L2IO:
         self.period = (1, 30)
         self.maps: list[mmap.mmap] = []
         self.queued: deque[int] = deque()
+        self.done: deque[tuple[int, int]] = deque()  # (buffer index, sequence) filled
         self.streaming = False
-        self.sequence = 0
+        self.sequence = 0  # the next frame's number on the device clock
+        self.t0 = 0.0
+        self.lost_frames = 0
+        self.dequeued = 0
         self.error_frames: set[int] = set()
+        self.truncated_frames: set[int] = set()  # sent cut short (a broken MJPG frame)
         self.unplugged = False
-        self.ready = threading.Event()
+        self.lock = threading.RLock()  # the acquisition thread and the test's both call in
+        self.changed = threading.Condition(self.lock)
+        self._encoded: dict[tuple, bytes] = {}
 
     # -- the I/O interface --------------------------------------------------
 
@@ -99,7 +115,18 @@ class FakeV4L2IO:
         return self.maps[index]
 
     def wait_readable(self, fd: int, timeout: float) -> bool:
-        return self.ready.wait(timeout)
+        end = time.monotonic() + timeout
+        with self.lock:
+            while True:
+                self._advance()
+                if self.done or self.unplugged:
+                    return True
+                now = time.monotonic()
+                if now >= end:
+                    return False
+                due = self.t0 + self.sequence * self.period_s if self.streaming else end
+                # the device's clock: sleep until the next frame is due (or unplug/STREAMOFF)
+                self.changed.wait(max(0.0, min(end, due) - now))
 
     def ioctl(self, fd: int, request: int, arg: bytearray) -> None:
         assert fd in self.open_fds and isinstance(arg, bytearray)
@@ -118,13 +145,24 @@ class FakeV4L2IO:
             raise OSError(errno.ENOTTY, "Inappropriate ioctl for device")
         size = (request >> 16) & 0x3FFF
         assert len(arg) == size, f"ioctl {request:#x}: {len(arg)} bytes, expected {size}"
-        handlers[request](arg)
+        with self.lock:
+            handlers[request](arg)
 
     # -- what the test controls -----------------------------------------------
 
+    @property
+    def period_s(self) -> float:
+        return self.period[0] / self.period[1]
+
     def unplug(self) -> None:
-        self.unplugged = True
-        self.ready.set()
+        with self.lock:
+            self.unplugged = True
+            self.changed.notify_all()
+
+    def wait_dequeued(self, n: int, timeout: float = 30.0) -> bool:
+        """Wait until ``n`` frames in all were dequeued (the test's view of the stream)."""
+        with self.lock:
+            return self.changed.wait_for(lambda: self.dequeued >= n, timeout)
 
     def expected_image(self) -> np.ndarray:
         return cv2.resize(self.image, (self.width, self.height), interpolation=cv2.INTER_NEAREST)
@@ -233,8 +271,10 @@ class FakeV4L2IO:
             raise self._einval()
         if self.streaming:
             raise OSError(errno.EBUSY, "Device or resource busy")
-        self.maps = [mmap.mmap(-1, self.buffer_size) for _ in range(min(req.count, 8))]
+        self.maps = [mmap.mmap(-1, self.buffer_size)
+                     for _ in range(min(req.count, self.MAX_BUFFERS))]
         self.queued.clear()
+        self.done.clear()
         req.count = len(self.maps)
 
     def _buffer(self, arg):
@@ -249,13 +289,33 @@ class FakeV4L2IO:
 
     def _qbuf(self, arg):
         buf = self._buffer(arg)
-        if buf.index in self.queued:
+        if buf.index in self.queued or any(i == buf.index for i, _ in self.done):
             raise self._einval()
+        self._advance()  # frames due before now could not use this buffer
         self.queued.append(buf.index)
-        if self.streaming:
-            self.ready.set()
+
+    def _advance(self) -> None:
+        """Run the device clock up to now: each due frame fills a queued buffer or is lost."""
+        if not self.streaming:
+            return
+        now = time.monotonic()
+        while self.t0 + self.sequence * self.period_s <= now:
+            if self.queued:
+                index = self.queued.popleft()
+                data = self._encode()
+                self.maps[index][: len(data)] = data
+                self.done.append((index, self.sequence))
+            else:
+                self.lost_frames += 1
+            self.sequence += 1
 
     def _encode(self) -> bytes:
+        key = (self.code, self.width, self.height, self.row_padding)
+        if key not in self._encoded:
+            self._encoded[key] = self._encode_now()
+        return self._encoded[key]
+
+    def _encode_now(self) -> bytes:
         rgb = self.expected_image()
         if self.code == "MJPG":
             ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
@@ -270,32 +330,30 @@ class FakeV4L2IO:
         buf = v.Buffer.from_buffer(arg)
         if not self.streaming:
             raise self._einval()
-        if not self.queued:
-            self.ready.clear()
+        self._advance()
+        if not self.done:
             raise BlockingIOError(errno.EAGAIN, "Resource temporarily unavailable")
-        index = self.queued.popleft()
-        if not self.queued:
-            self.ready.clear()
-        data = self._encode()
-        self.maps[index][: len(data)] = data
-        buf.index, buf.bytesused, buf.sequence = index, len(data), self.sequence
-        buf.flags = v.BUF_FLAG_ERROR if self.sequence in self.error_frames else 0
-        t = self.sequence * self.period[0] / self.period[1]
+        index, sequence = self.done.popleft()
+        used = 100 if sequence in self.truncated_frames else len(self._encode())
+        buf.index, buf.bytesused, buf.sequence = index, used, sequence
+        buf.flags = v.BUF_FLAG_ERROR if sequence in self.error_frames else 0
+        t = sequence * self.period_s
         buf.timestamp.tv_sec, buf.timestamp.tv_usec = int(t), round((t % 1) * 1e6)
         buf.field, buf.length = 1, self.buffer_size
-        self.sequence += 1
+        self.dequeued += 1
+        self.changed.notify_all()
 
     def _streamon(self, arg):
         if ctypes.c_int.from_buffer(arg).value != v.BUF_TYPE_VIDEO_CAPTURE or not self.maps:
             raise self._einval()
         self.streaming = True
-        if self.queued:
-            self.ready.set()
+        self.t0, self.sequence = time.monotonic(), 0
 
     def _streamoff(self, arg):
         self.streaming = False
         self.queued.clear()
-        self.ready.clear()
+        self.done.clear()
+        self.changed.notify_all()
 
 
 # -- the ioctl layer matches the kernel's ---------------------------------------
@@ -367,7 +425,10 @@ def test_stream_each_format(image, code, tolerance):
     with V4L2Camera("/dev/video0", pixel_format=code, io=io) as cam:
         assert cam.pixel_format == code and cam.size == (640, 480)
         frames = grab(cam, 12)
-        assert cam.stats() == {"delivered": 12.0, "failures": 0.0, "missing_frames": 0.0}
+        stats = cam.stats()
+        assert stats["delivered"] == 12 and stats["buffers"] == 30  # 1 s at 30 fps
+        assert stats["failures"] == stats["missing_frames"] == stats["bad_buffers"] == 0
+        assert stats["dropped_in_driver"] == 0 and io.lost_frames == 0
         assert not io.streaming and not io.maps  # STREAMOFF and REQBUFS(0) on the way out
     assert not io.open_fds
     assert [f.index for f in frames] == list(range(12))
@@ -382,6 +443,7 @@ def test_stream_each_format(image, code, tolerance):
         assert np.abs(frame.image.astype(int) - reference).max() <= tolerance
         assert np.abs(frame.image.astype(int) - expected).mean() < 2
     # Copied out of the mmap buffers: distinct arrays that stay valid.
+    assert stats["delivered"] + stats["discarded_at_stop"] == io.dequeued
     assert frames[0].image is not frames[-1].image and frames[0].image.flags.writeable
 
 
@@ -440,6 +502,15 @@ def test_error_buffers_are_counted_and_skipped(image):
         assert cam.stats()["failures"] == 2 and cam.stats()["missing_frames"] == 0
 
 
+def test_undecodable_frames_are_counted_and_skipped(image):
+    io = FakeV4L2IO(image, formats=("MJPG",))
+    io.truncated_frames = {2}
+    with V4L2Camera("/dev/video0", io=io) as cam:
+        frames = grab(cam, 5)
+        assert [f.index for f in frames] == [0, 1, 3, 4, 5]
+        assert cam.stats()["bad_buffers"] == 1 and cam.stats()["failures"] == 0
+
+
 def test_unplugged_mid_stream(image):
     io = FakeV4L2IO(image)
     cam = V4L2Camera("/dev/video0", io=io)
@@ -463,6 +534,68 @@ def test_stop_from_another_thread(image):
         n = sum(1 for _ in cam.frames())
         timer.join()
         assert n > 1
+
+
+def test_buffer_pool_holds_a_second_of_frames(image):
+    io = FakeV4L2IO(image)
+    with V4L2Camera("/dev/video0", io=io) as cam:
+        assert cam.set_frame_rate(15.0) == 15.0
+        grab(cam, 1)
+        assert cam.stats()["buffers"] == 15
+        cam.set_frame_rate(60.0)
+        grab(cam, 1)
+        assert cam.stats()["buffers"] == io.MAX_BUFFERS  # asked 60, the kernel gives 32
+    # capped by memory: 640x480 RGB3 is 0.88 MiB a buffer
+    with V4L2Camera("/dev/video0", io=FakeV4L2IO(image), max_buffer_mib=5) as cam:
+        grab(cam, 1)
+        assert cam.stats()["buffers"] == 5
+    with V4L2Camera("/dev/video0", io=FakeV4L2IO(image), n_buffers=6) as cam:
+        grab(cam, 1)
+        assert cam.stats()["buffers"] == 6
+
+
+def test_slow_consumer_does_not_starve_the_device(image):
+    """A consumer that stalls (first-frame compilation, a slow disk) loses nothing.
+
+    The acquisition thread keeps the buffers cycling; the copies wait for the
+    consumer.  With a starved queue the device would skip frames (io.lost_frames).
+    """
+    io = FakeV4L2IO(image, formats=("YUYV",), sizes=((320, 240),))
+    with V4L2Camera("/dev/video0", io=io, n_buffers=4) as cam:
+        cam.set_frame_rate(60.0)
+        frames = []
+        for frame in cam.frames():
+            frames.append(frame.index)
+            if len(frames) in (1, 20):
+                assert io.wait_dequeued(len(frames) + 45)  # 3/4 s of frames arrive meanwhile
+            if len(frames) == 100:
+                cam.stop()
+        stats = cam.stats()
+    assert frames == list(range(100))
+    assert io.lost_frames == 0 and stats["missing_frames"] == 0
+    assert stats["dropped_in_driver"] == 0 and stats["delivered"] == 100
+    assert stats["delivered"] + stats["discarded_at_stop"] == io.dequeued
+
+
+def test_consumer_far_behind_drops_the_oldest_and_counts(image):
+    io = FakeV4L2IO(image, formats=("RGB3",), sizes=((320, 240),))
+    frame_mib = 320 * 240 * 3 / 2**20
+    with V4L2Camera("/dev/video0", io=io, max_pending_mib=3.5 * frame_mib) as cam:
+        cam.set_frame_rate(60.0)
+        indices = []
+        for frame in cam.frames():
+            indices.append(frame.index)
+            if len(indices) == 1:
+                assert io.wait_dequeued(30)  # far behind: 3 frames fit in the queue
+            if frame.index >= 40:
+                cam.stop()
+        stats = cam.stats()
+    dropped = stats["dropped_in_driver"]
+    assert dropped >= 20
+    # every gap in the indices is a counted drop; every frame is accounted for
+    assert indices[-1] - indices[0] + 1 - len(indices) == dropped
+    assert stats["delivered"] + dropped + stats["discarded_at_stop"] == io.dequeued
+    assert io.lost_frames == 0 and stats["missing_frames"] == 0
 
 
 def test_open_errors_are_one_line(image):

@@ -26,6 +26,15 @@ thread, so the stages overlap.  Reported: frames per second and wall time per
 frame of the whole replay, and the median time per stage (decode, pipeline,
 write) measured inside that run.  --e2e-frames 0 skips it.
 
+Against the paper's plain reference (lightflow.app.reference: NumPy, row by
+row, the benchmark's baseline, not used by the pipeline): recordings of
+--compare-frames and of 2 frames are replayed with `lightflow replay REC
+--export-depth OUT` (a fresh process each) and with the reference (decode,
+depth, write, one after the other), each run --compare-repeats times; the
+difference of the fastest runs divided by the difference in frames is the
+marginal time per frame, so that start-up cancels.  Reported: both marginal
+times and the speed-up.  --compare-frames 0 skips it.
+
 With --recorder, also measures the sustained write rate of the recorder
 (1600x1200 RGB PNG at 30 fps for 5 s): frames/s, MiB/s and dropped frames."""
 
@@ -34,10 +43,14 @@ examples:
   lightflow bench                       # two-projector rig, board scene, 1600x1200
   lightflow bench --rig single-projector --frames 50
   lightflow bench --recorder            # also the recorder: 1600x1200 PNG at 30 fps
-  lightflow bench --e2e-frames 40       # a longer end-to-end replay with export"""
+  lightflow bench --e2e-frames 40       # a longer end-to-end replay with export
+  lightflow bench --compare-frames 0    # without the comparison with the reference"""
 
 #: frames in the end-to-end replay by default
 E2E_FRAMES = 16
+#: the long recording of the side-by-side comparison (the short one has 2 frames)
+COMPARE_FRAMES = 12
+COMPARE_SHORT = 2
 
 
 WARMUP = 2
@@ -82,6 +95,21 @@ def register(subparsers) -> None:
         default=E2E_FRAMES,
         metavar="N",
         help=f"frames in the end-to-end replay with export (default: {E2E_FRAMES}; 0: skip it)",
+    )
+    p.add_argument(
+        "--compare-frames",
+        type=int,
+        default=COMPARE_FRAMES,
+        metavar="N",
+        help=f"frames of the long recording replayed side by side with the plain reference "
+        f"(default: {COMPARE_FRAMES}; 0: skip the comparison)",
+    )
+    p.add_argument(
+        "--compare-repeats",
+        type=int,
+        default=3,
+        metavar="N",
+        help="runs of each replay in the comparison; the fastest counts (default: 3)",
     )
     p.add_argument("--recorder", action="store_true", help="also benchmark the recording writer")
     p.set_defaults(func=run)
@@ -159,6 +187,18 @@ def run(args: argparse.Namespace) -> int:
     if args.e2e_frames:
         for line in end_to_end(rig, pipeline, frames, args.e2e_frames):
             print(line)
+    if args.compare_frames:
+        if args.compare_frames <= COMPARE_SHORT or args.compare_repeats < 1:
+            raise ConfigError(
+                f"--compare-frames: expected 0 or more than {COMPARE_SHORT}, got "
+                f"{args.compare_frames} (--compare-repeats: at least 1)"
+            )
+        if rig.single_projector:
+            print("\nreference comparison: skipped (the reference needs a two-projector rig)")
+        else:
+            for line in versus_reference(rig, args.rig, pipeline, frames, args.compare_frames,
+                                         args.compare_repeats, config.stride):  # fmt: skip
+                print(line)
     if args.recorder:
         _run_recorder()
     return 0
@@ -238,6 +278,79 @@ def end_to_end(rig, pipeline, frames, n: int) -> list[str]:
         f"(one after the other: {sequential:.1f})",
         f"  frames processed {stats.frames_done} of {n}, exported {exported}, "
         f"dropped {stats.dropped}",
+    ]
+
+
+def _write_recording(path, rig, frames, n: int) -> None:
+    """An ``n``-frame recording cycling through ``frames`` (PNG, as ``capture --record``)."""
+    import dataclasses
+
+    from lightflow.app.recording import RecordingWriter
+
+    period = 1.0 / 30
+    with RecordingWriter(path, rig, frames[0].exposure_s, put_timeout_s=None) as writer:
+        for i in range(n):
+            f = frames[i % len(frames)]
+            writer.write(dataclasses.replace(f, index=i, timestamp=i * period, name=""))
+
+
+def versus_reference(rig, rig_arg, pipeline, frames, n: int, repeats: int, stride: int):
+    """Marginal time per frame of ``replay --export-depth`` and of the plain reference.
+
+    Both replay an ``n``-frame and a 2-frame recording of ``frames``;
+    ``lightflow replay`` runs as its own process (as a user runs it: start-up,
+    read-ahead, pipeline, background export), the reference in this process
+    (:func:`lightflow.app.reference.reference_replay`: decode, depth, write).
+    The fastest of ``repeats`` runs of each counts.  Returns the report lines.
+    """
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from lightflow.app.reference import reference_replay
+
+    cam = rig.camera
+    lengths = (COMPARE_SHORT, n)
+    best = {(tool, k): float("inf") for tool in ("replay", "reference") for k in lengths}
+    with tempfile.TemporaryDirectory(prefix="lightflow-bench-") as tmp:
+        recs = {k: Path(tmp) / f"rec{k}" for k in lengths}
+        for k in lengths:
+            _write_recording(recs[k], rig, frames, k)
+        total = 2 * repeats * len(lengths)
+        done = 0
+        for r in range(repeats):
+            for k in lengths:  # interleaved: a load spike hits both lengths alike
+                out = Path(tmp) / f"out-{k}-{r}"
+                cmd = [sys.executable, "-m", "lightflow.app.cli", "replay", str(recs[k]),
+                       "--export-depth", str(out / "replay")]  # fmt: skip
+                if stride != 4:
+                    cmd += ["--stride", str(stride)]
+                t = time.perf_counter()
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                wall = time.perf_counter() - t
+                if proc.returncode != 0:
+                    raise ConfigError(f"bench: lightflow replay failed: {proc.stderr.strip()}")
+                best["replay", k] = min(best["replay", k], wall)
+                done += 1
+                _progress("replay vs reference", done, total)
+                t = time.perf_counter()
+                reference_replay(recs[k], out / "reference", lut=pipeline.lut)
+                best["reference", k] = min(best["reference", k], time.perf_counter() - t)
+                done += 1
+                _progress("replay vs reference", done, total)
+    extra = n - COMPARE_SHORT
+    ms = {tool: (best[tool, n] - best[tool, COMPARE_SHORT]) / extra * 1e3
+          for tool in ("replay", "reference")}  # fmt: skip
+    return [
+        "",
+        f"versus the paper's plain reference (lightflow.app.reference), {cam.width}x{cam.height}, "
+        f"marginal time per frame ({n}- vs {COMPARE_SHORT}-frame recording, fastest of "
+        f"{repeats} runs):",
+        f"  lightflow replay --export-depth  {ms['replay']:7.1f} ms per frame "
+        f"(runs of {best['replay', COMPARE_SHORT]:.2f} s and {best['replay', n]:.2f} s)",
+        f"  reference (decode, depth, write) {ms['reference']:7.1f} ms per frame "
+        f"(runs of {best['reference', COMPARE_SHORT]:.2f} s and {best['reference', n]:.2f} s)",
+        f"  speed-up {ms['reference'] / ms['replay']:.1f}x",
     ]
 
 

@@ -91,6 +91,9 @@ def register(subparsers) -> None:
                    help="memory for frames waiting to be written by --record (default 1024)")
     p.add_argument("--fps", type=float, metavar="FPS",
                    help="camera frame rate (default: the camera's; synthetic: 30)")
+    p.add_argument("--control-wait", type=float, default=10.0, metavar="S",
+                   help="aravis: how long to wait for a GigE camera still controlled by another "
+                   "client, e.g. a crashed lightflow until its heartbeat times out (default 10)")
     add_output_options(p)
     add_pipeline_options(p)
     p.set_defaults(func=run)
@@ -131,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     opts = {}
     if scheme == "synthetic":
         opts = {"frames": args.frames, "fps": args.fps or 30.0}
+    if scheme == "aravis":
+        if not args.control_wait >= 0:
+            raise ConfigError(f"--control-wait: expected seconds >= 0, got {args.control_wait}")
+        opts = {"control_wait_s": args.control_wait}
     camera = open_camera(args.camera, rig, **opts)
     rig = rig or camera.rig
     patterns = _pattern_output(args, rig)  # before the camera: a bad --screens fails fast

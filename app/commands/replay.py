@@ -181,7 +181,9 @@ def run(args: argparse.Namespace) -> int:
         print("note: no output option given: computing depth only (see --help)", file=sys.stderr)
     status = StatusLine(total=n)
     runner = Runner(camera, pipeline, sinks, on_stats=status, lossless=True,
-                    count_gaps=False)  # a gap is a bad frame, listed separately
+                    count_gaps=False,  # a gap is a bad frame, listed separately
+                    on_warning=lambda text: print(f"\nwarning: {text}", file=sys.stderr,
+                                                  flush=True))  # fmt: skip
     with camera:
         stats = runner.run(threading.Event())
     if stats.frames_done == 0:

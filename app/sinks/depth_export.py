@@ -54,6 +54,9 @@ def write_depth_npy(path: Path, depth: np.ndarray) -> None:
 class DepthExportSink:
     """Write each frame's depth as ``OUT/<stem>.npy``: float32, metres, NaN without estimate.
 
+    Beside it, ``OUT/<stem>_std.npy``: the predicted standard deviation of each
+    depth (float32, metres, NaN where there is no depth).
+
     Parameters
     ----------
     out_dir : str or Path
@@ -65,11 +68,16 @@ class DepthExportSink:
         self.written = 0
 
     def write(self, result: FrameResult, stats: RunStats) -> None:
-        write_depth_npy(self.out_dir / f"{result.frame.stem}.npy", result.depth)
+        stem = result.frame.stem
+        if result.depth_std is not None:
+            write_depth_npy(self.out_dir / f"{stem}_std.npy", result.depth_std)
+        # the depth last: a complete depth file means its std file is complete too
+        write_depth_npy(self.out_dir / f"{stem}.npy", result.depth)
         self.written += 1
 
     def close(self) -> None:
         """Nothing is buffered: every file is complete when ``write`` returns."""
 
     def describe(self) -> str:
-        return f"depth maps: {self.written} files in {self.out_dir}/ (numpy .npy, metres)"
+        return (f"depth maps: {self.written} frames in {self.out_dir}/ (numpy .npy, metres; "
+                f"<frame>_std.npy: predicted standard deviation)")  # fmt: skip
