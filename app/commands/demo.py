@@ -35,9 +35,9 @@ process) and the rig's depth table, and compiles the pipeline's and the
 renderer's kernels (numba); all of it is cached under $XDG_CACHE_HOME/lightflow
 and each step says what it is doing.  Measured with the defaults on a shared
 2-core machine (load average 5-9 from other jobs): warm caches, first depth
-picture after 5.7 s and the whole demo in 76 s (59 s of CPU time); empty
-caches, first depth picture after 55-85 s (about 60 s of CPU time, half of it
-compiling the pipeline's kernels) and the whole demo in 125-170 s.  Rendering
+picture after 6 s and the whole demo in 77 s (56 s of CPU time); empty
+caches, first depth picture after 50-90 s (60-80 s of CPU time, most of it
+compiling the pipeline's kernels) and the whole demo in 110-155 s.  Rendering
 is the bound while streaming (1-2 s a frame at 800x600 under that load); the
 first and last lines give the times and the CPU time of the run."""
 
