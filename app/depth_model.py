@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -157,16 +158,19 @@ def _h_of_z(projs, pats, single, x, y, z):
     return math.log(abs(du1) / p1) - math.log(abs(du2) / p2)
 
 
-@nb.njit(cache=True, parallel=True)
+# serial and releasing the GIL, run on a thread per core by build_lut: numba's
+# parallel=True compiles about 1.5x slower (seconds on a cold cache, on the
+# path to a first run's first depth picture) for no faster a build
+@nb.njit(cache=True, nogil=True)
 def _build_lut(rays, projs, pats, single, near, far, n_fwd, n_lut, min_slope, h0, inv_dh, table):
     n = rays.shape[0]
     inv_near = 1.0 / near
     inv_far = 1.0 / far
-    for i in nb.prange(n):
+    hs = np.empty(n_fwd)
+    zs = np.empty(n_fwd)
+    for i in range(n):
         x = rays[i, 0]
         y = rays[i, 1]
-        hs = np.empty(n_fwd)
-        zs = np.empty(n_fwd)
         for j in range(n_fwd):
             zs[j] = 1.0 / (inv_near + (inv_far - inv_near) * j / (n_fwd - 1))
             hs[j] = _h_of_z(projs, pats, single, x, y, zs[j])
@@ -313,14 +317,20 @@ def build_lut(
     table = np.empty((n, LUT_SAMPLES))
     projs, pats = _projector_params(rig), pattern_params(rig)
     chunk = max(gw, (n // 20 // gw) * gw)
-    for s in range(0, n, chunk):
+
+    def build(s: int) -> int:
         e = min(n, s + chunk)
         _build_lut(
             flat[s:e], projs, pats, rig.single_projector, depth_range.near, depth_range.far,
             FORWARD_SAMPLES, LUT_SAMPLES, min_slope, h0[s:e], inv_dh[s:e], table[s:e],
         )  # fmt: skip
-        if progress:
-            progress(e // gw, gh)
+        return e
+
+    # chunks of grid rows on a thread per core (the kernel releases the GIL)
+    with ThreadPoolExecutor(max(1, len(os.sched_getaffinity(0))), "lut") as pool:
+        for e in pool.map(build, range(0, n, chunk)):
+            if progress:
+                progress(e // gw, gh)
     return DepthLUT(
         stride,
         h0.reshape(gh, gw).astype(np.float32),

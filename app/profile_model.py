@@ -18,10 +18,14 @@ Everything is in units of sigma, so one table serves every rig.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import inspect
 import math
+import os
 import sys
+import threading
 
 import numba as nb
 import numpy as np
@@ -114,10 +118,16 @@ def _simulate_detector(L, w, sigma, phase, out2):
             out2[1] = out[k, 7]
 
 
-@nb.njit(cache=False, parallel=True)
-def _measure_table(s_axis, w_axis, l_axis, m_out, r_out):
-    ns, nw, nl = s_axis.shape[0], w_axis.shape[0], l_axis.shape[0]
-    for idx in nb.prange(ns * nw):
+# The table kernels below are serial over a range of (sigma, w) cells and
+# release the GIL; _on_threads runs them on a thread per core.  numba's
+# parallel=True would compile them several seconds slower, on the path to the
+# first depth picture of a first run (the tables are built once per machine).
+
+
+@nb.njit(cache=False, nogil=True)
+def _measure_table(s_axis, w_axis, l_axis, m_out, r_out, lo, hi):
+    nw, nl = w_axis.shape[0], l_axis.shape[0]
+    for idx in range(lo, hi):
         i = idx // nw
         j = idx % nw
         tmp = np.empty(2)
@@ -135,11 +145,11 @@ def _measure_table(s_axis, w_axis, l_axis, m_out, r_out):
             r_out[i, j, k] = sr / cnt if cnt else np.nan
 
 
-@nb.njit(cache=True, parallel=True)
-def _invert_table(m_tab, l_axis, m_axis, out):
-    """Per (sigma, w): L at each m of ``m_axis`` on the informative part of m(L)."""
-    ns, nw, nl = m_tab.shape
-    for idx in nb.prange(ns * nw):
+@nb.njit(cache=True, nogil=True)
+def _invert_table(m_tab, l_axis, m_axis, out, lo, hi):
+    """Per (sigma, w) cell ``lo .. hi``: L at each m of ``m_axis`` where m(L) informs."""
+    nw, nl = m_tab.shape[1:]
+    for idx in range(lo, hi):
         i = idx // nw
         j = idx % nw
         first = nl
@@ -162,8 +172,103 @@ def _invert_table(m_tab, l_axis, m_axis, out):
                     break
 
 
-@nb.njit(cache=True, parallel=True)
-def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out):
+@nb.njit(cache=True)
+def _joint_cell(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, idx):
+    """One (sigma, w) cell of :func:`_joint_table`."""
+    nw, nl = m_tab.shape[1:]
+    nm = m_axis.shape[0]
+    nr = r_axis.shape[0]
+    fine = 10
+    i = idx // nw
+    j = idx % nw
+    # the model curve (m(L), r(L)) sampled finely (linear between table rows)
+    k0 = 0
+    while k0 < nl and l_axis[k0] < l_min:
+        k0 += 1
+    n = (nl - 1 - k0) * fine + 1
+    cm = np.empty(n)
+    cr = np.empty(n)
+    cl = np.empty(n)
+    for k in range(k0, nl - 1):
+        for f in range(fine):
+            q = (k - k0) * fine + f
+            t = f / fine
+            cm[q] = m_tab[i, j, k] + t * (m_tab[i, j, k + 1] - m_tab[i, j, k])
+            cr[q] = r_tab[i, j, k] + t * (r_tab[i, j, k + 1] - r_tab[i, j, k])
+            cl[q] = l_axis[k] + t * (l_axis[k + 1] - l_axis[k])
+    cm[n - 1] = m_tab[i, j, nl - 1]
+    cr[n - 1] = r_tab[i, j, nl - 1]
+    cl[n - 1] = l_axis[nl - 1]
+    inv_rho2 = 1.0 / (rho * rho)
+    # the curve's points by m: for each m of the grid, only points nearer in
+    # m than the worst best cost so far can win, so walk outwards from m and
+    # stop there; ties go to the lowest index, as in a scan of every point
+    nv = 0
+    for q in range(n):
+        if np.isfinite(cm[q]) and np.isfinite(cr[q]):
+            nv += 1
+    valid = np.empty(nv, np.int64)
+    nv = 0
+    for q in range(n):
+        if np.isfinite(cm[q]) and np.isfinite(cr[q]):
+            valid[nv] = q
+            nv += 1
+    # insertion sort (m(L) is nearly sorted already; numba's argsort and
+    # searchsorted would cost seconds of compilation)
+    order = valid
+    for x in range(1, nv):
+        q = order[x]
+        y = x - 1
+        while y >= 0 and cm[order[y]] > cm[q]:
+            order[y + 1] = order[y]
+            y -= 1
+        order[y + 1] = q
+    sorted_m = np.empty(nv)
+    for x in range(nv):
+        sorted_m[x] = cm[order[x]]
+    best = np.empty(nr)
+    bq = np.empty(nr, np.int64)
+    for a in range(nm):
+        mv = m_axis[a]
+        for b in range(nr):
+            best[b] = np.inf
+            bq[b] = -1
+        worst = np.inf
+        lo = 0  # first point with m >= mv, by bisection
+        hi = nv
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if sorted_m[mid] < mv:
+                lo = mid + 1
+            else:
+                hi = mid
+        lo = hi - 1
+        while lo >= 0 or hi < nv:
+            # the nearer side next: |mv - cm| never decreases along the walk
+            if hi >= nv or (lo >= 0 and mv - sorted_m[lo] <= sorted_m[hi] - mv):
+                q = order[lo]
+                lo -= 1
+            else:
+                q = order[hi]
+                hi += 1
+            dm = mv - cm[q]
+            if dm * dm > worst:
+                break
+            for b in range(nr):
+                dr = r_axis[b] - cr[q]
+                c = dm * dm + dr * dr * inv_rho2
+                if c < best[b] or (c == best[b] and q < bq[b]):
+                    best[b] = c
+                    bq[b] = q
+            worst = 0.0
+            for b in range(nr):
+                worst = max(worst, best[b])
+        for b in range(nr):
+            out[i, j, a, b] = cl[bq[b]] if bq[b] >= 0 else np.nan
+
+
+@nb.njit(cache=True, nogil=True)
+def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, lo, hi):
     """Per (sigma, w): the sweep that best explains a measured (width, ramp) pair.
 
     ``L = argmin (m - m(L))^2 + ((r - r(L)) / rho)^2``: long bands are decided by
@@ -171,48 +276,8 @@ def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out):
     longer than the line by their ramps (their width is the line's), and bands
     in between by both.  NaN where the tables have no data.
     """
-    ns, nw, nl = m_tab.shape
-    nm = m_axis.shape[0]
-    nr = r_axis.shape[0]
-    fine = 10
-    for idx in nb.prange(ns * nw):
-        i = idx // nw
-        j = idx % nw
-        # the model curve (m(L), r(L)) sampled finely (linear between table rows)
-        k0 = 0
-        while k0 < nl and l_axis[k0] < l_min:
-            k0 += 1
-        n = (nl - 1 - k0) * fine + 1
-        cm = np.empty(n)
-        cr = np.empty(n)
-        cl = np.empty(n)
-        for k in range(k0, nl - 1):
-            for f in range(fine):
-                q = (k - k0) * fine + f
-                t = f / fine
-                cm[q] = m_tab[i, j, k] + t * (m_tab[i, j, k + 1] - m_tab[i, j, k])
-                cr[q] = r_tab[i, j, k] + t * (r_tab[i, j, k + 1] - r_tab[i, j, k])
-                cl[q] = l_axis[k] + t * (l_axis[k + 1] - l_axis[k])
-        cm[n - 1] = m_tab[i, j, nl - 1]
-        cr[n - 1] = r_tab[i, j, nl - 1]
-        cl[n - 1] = l_axis[nl - 1]
-        inv_rho2 = 1.0 / (rho * rho)
-        for a in range(nm):
-            mv = m_axis[a]
-            for b in range(nr):
-                rv = r_axis[b]
-                best = np.inf
-                bl = np.nan
-                for q in range(n):
-                    if not (np.isfinite(cm[q]) and np.isfinite(cr[q])):
-                        continue
-                    dm = mv - cm[q]
-                    dr = rv - cr[q]
-                    c = dm * dm + dr * dr * inv_rho2
-                    if c < best:
-                        best = c
-                        bl = cl[q]
-                out[i, j, a, b] = bl
+    for idx in range(lo, hi):
+        _joint_cell(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, idx)
 
 
 @nb.njit(cache=True, inline="always")
@@ -291,6 +356,47 @@ def _trilinear(table, ax0, step1, step2, x0, x1, x2, out):
         res[k] = trilinear_at(table, ax0[0], ax0[1] - ax0[0], step1, step2, f0[k], f1[k], f2[k])
 
 
+def tables_path():
+    """Where the profile tables are cached (``pathlib.Path``): keyed by the detector's source."""
+    from .depth_model import lut_cache_dir  # the same cache folder as the LUTs
+
+    digest = hashlib.sha256(
+        inspect.getsource(_bands_module).encode()
+        + inspect.getsource(sys.modules[__name__]).encode()
+    ).hexdigest()[:12]
+    return lut_cache_dir() / f"profile-tables-{digest}.npz"
+
+
+@contextlib.contextmanager
+def _build_lock(path):
+    """An exclusive lock beside ``path`` (none when the folder is not writable)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path.with_name(path.name + ".lock"), "a")  # noqa: SIM115
+    except OSError:
+        yield
+        return
+    with handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _on_threads(kernel, cells: int, *args) -> None:
+    """Run ``kernel(*args, lo, hi)`` over cells ``0 .. cells`` in chunks, on a thread per core."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    chunk = max(1, cells // 32)  # small chunks: the cells' costs differ
+    threads = max(1, len(os.sched_getaffinity(0)))
+    with ThreadPoolExecutor(threads, "profile-tables") as pool:
+        jobs = [pool.submit(kernel, *args, lo, min(cells, lo + chunk))
+                for lo in range(0, cells, chunk)]  # fmt: skip
+        for job in jobs:
+            job.result()
+
+
 class ProfileTables:
     """What the band detector reports, m(sigma, w, L) and r(sigma, w, L), and L(sigma, w, m).
 
@@ -299,34 +405,70 @@ class ProfileTables:
     effects are part of the model.  Cached on disk (a few seconds to build).
     """
 
-    def __init__(self):
-        from .depth_model import lut_cache_dir  # the same cache folder as the LUTs
+    def __init__(self, background: bool = False):
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        if background:
+            # a daemon: a process that ends early must not wait for a build
+            threading.Thread(target=self._prepare, name="profile-tables", daemon=True).start()
+        else:
+            self._prepare()
+            self._wait()
 
-        # the tables model the detector's code: key them by its source
-        digest = hashlib.sha256(
-            inspect.getsource(_bands_module).encode()
-            + inspect.getsource(sys.modules[__name__]).encode()
-        ).hexdigest()[:12]
-        path = lut_cache_dir() / f"profile-tables-{digest}.npz"
+    def _prepare(self) -> None:
+        try:
+            path = tables_path()
+            if self._load(path):
+                return
+            # one process builds, the others wait for its file (a demo builds
+            # them in a helper process while it compiles the pipeline)
+            with _build_lock(path):
+                if not self._load(path):
+                    self._build(path)
+        except BaseException as exc:  # noqa: BLE001 - raised where the tables are used
+            self._error = exc
+        finally:
+            self._ready.set()
+
+    def _wait(self) -> None:
+        self._ready.wait()
+        if self._error is not None:
+            raise self._error
+
+    # the arrays wait for a background load (see prefetch_tables)
+    m = property(lambda self: self._array("_m"), doc="m(sigma, w, L): measured width.")
+    r = property(lambda self: self._array("_r"), doc="r(sigma, w, L): measured ramp.")
+    inverse = property(lambda self: self._array("_inverse"), doc="L(sigma, w, m).")
+    joint = property(lambda self: self._array("_joint"), doc="L(sigma, w, m, r) (float32).")
+
+    def _array(self, name: str) -> np.ndarray:
+        self._wait()
+        return getattr(self, name)
+
+    def _load(self, path) -> bool:
         try:
             with np.load(path) as d:
-                self.m, self.r, self.inverse = d["m"], d["r"], d["inverse"]
-                self.joint = d["joint"]
-            return
+                self._m, self._r, self._inverse = d["m"], d["r"], d["inverse"]
+                self._joint = d["joint"]
+            return True
         except (OSError, KeyError, ValueError):
-            pass
+            return False
+
+    def _build(self, path) -> None:
         shape = (len(S_AXIS), len(W_AXIS), len(L_AXIS))
-        self.m = np.empty(shape)
-        self.r = np.empty(shape)
-        _measure_table(S_AXIS, W_AXIS, L_AXIS, self.m, self.r)
-        self.inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
-        _invert_table(self.m, L_AXIS, M_AXIS, self.inverse)
-        self.joint = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS), len(R_AXIS)), np.float32)
-        _joint_table(self.m, self.r, L_AXIS, M_AXIS, R_AXIS, RAMP_NOISE, L_MIN, self.joint)
+        m = np.empty(shape)
+        r = np.empty(shape)
+        cells = len(S_AXIS) * len(W_AXIS)
+        _on_threads(_measure_table, cells, S_AXIS, W_AXIS, L_AXIS, m, r)
+        inverse = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS)))
+        _on_threads(_invert_table, cells, m, L_AXIS, M_AXIS, inverse)
+        joint = np.empty((len(S_AXIS), len(W_AXIS), len(M_AXIS), len(R_AXIS)), np.float32)
+        _on_threads(_joint_table, cells, m, r, L_AXIS, M_AXIS, R_AXIS, RAMP_NOISE, L_MIN, joint)
+        self._m, self._r, self._inverse, self._joint = m, r, inverse, joint
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez(tmp, m=self.m, r=self.r, inverse=self.inverse, joint=self.joint)
+            np.savez(tmp, m=m, r=r, inverse=inverse, joint=joint)
             tmp.replace(path)
         except OSError:
             pass  # an unwritable cache only costs the rebuild
@@ -374,6 +516,18 @@ def tables() -> ProfileTables:
     if _TABLES is None:
         _TABLES = ProfileTables()
     return _TABLES
+
+
+def prefetch_tables() -> None:
+    """Load (or build) the shared tables on a background thread from now on.
+
+    :func:`tables` then returns at once, and the first use of their arrays
+    waits for them, so that a pipeline can compile its band kernels meanwhile
+    (``lightflow demo`` builds the tables in a helper process).
+    """
+    global _TABLES
+    if _TABLES is None:
+        _TABLES = ProfileTables(background=True)
 
 
 def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: int = 120):

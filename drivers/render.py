@@ -10,6 +10,13 @@ quantisation are applied by :func:`expose`.
 
 Scene primitives are rows of a float64 array (see ``PRIM_*`` and the builders
 in :mod:`lightflow.drivers.scenes`) so that the kernel stays one compiled loop.
+
+The kernels are serial over a range of image rows and release the GIL;
+:mod:`lightflow.drivers.synthetic` runs bands of rows on a thread per core.
+numba's ``parallel=True`` would compile each of them about three times slower
+(about 18 s more for the renderer on a cold cache, on the critical path of a
+first ``lightflow demo``) for the same speed.  Every kernel has one call site
+of each heavy helper, so that LLVM inlines and optimises it once.
 """
 
 from __future__ import annotations
@@ -308,23 +315,23 @@ def _pixel_mc(
     return acc0 / samples, acc1 / samples, acc2 / samples
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def render_exposure(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
-    t0, exposure, samples, offsets, out,
+    t0, exposure, samples, offsets, row_lo, row_hi, out,
 ):  # fmt: skip
-    """Integrate radiance over the exposure for every pixel into ``out`` (h, w, 3).
+    """Integrate radiance over the exposure for image rows ``row_lo .. row_hi`` into ``out``.
 
     The slow reference form: ``samples`` stratified samples of time and pixel
     area for every pixel.  ``rays``: (h, w, 3) camera rays (z = 1) at pixel
     centres; ``ray_dx``/``ray_dy`` their change per pixel (for sub-pixel
     samples).  ``offsets``: (samples, 3) stratified (time fraction, dx, dy).
     ``pat_foot``: (n_pat, max_lines, 2) line footprints padded, ``pat_nfoot``
-    the counts.
+    the counts.  ``out``: (h, w, 3).
     """
-    h, w = rays.shape[:2]
-    for i in nb.prange(h):
+    w = rays.shape[1]
+    for i in range(row_lo, row_hi):
         for j in range(w):
             a0, a1, a2 = _pixel_mc(
                 i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
@@ -480,7 +487,7 @@ def _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy, 
     st[1] = alb
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, times, r0, states):
     """States (see :func:`_point_state`) of the pixel-centre rays of rows ``r0 ..`` at ``times``.
 
@@ -489,33 +496,33 @@ def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, tim
     """
     h, w = rays.shape[:2]
     rows = states.shape[0]
-    for ii in nb.prange(rows):
+    nk = times.shape[0]
+    for ii in range(rows):
         i = r0 + ii
         if i < 0 or i >= h:
             continue
-        nk = times.shape[0]
         for j in range(w):
             dx = rays[i, j, 0]
             dy = rays[i, j, 1]
             st = states[ii, j]
-            _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
-                         times[0], st[0])  # fmt: skip
-            _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
-                         times[nk - 1], st[nk - 1])  # fmt: skip
-            same = True
-            for f in range(st.shape[1]):
-                if st[0, f] != st[nk - 1, f]:
-                    same = False
-                    break
-            for kk in range(1, nk - 1):
-                if same:
-                    # nothing seen by this ray changed between start and end: a
-                    # static surface (nothing in these scenes crosses a pixel
-                    # entirely within one exposure)
-                    st[kk, :] = st[0, :]
-                else:
-                    _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx,
-                                 dy, times[kk], st[kk])  # fmt: skip
+            # the first and the last knot, then the middle ones unless nothing
+            # seen by this ray changed between start and end: a static surface
+            # (nothing in these scenes crosses a pixel entirely within one exposure)
+            for n in range(nk):
+                kk = 0 if n == 0 else (nk - 1 if n == 1 else n - 1)
+                if n == 2:
+                    same = True
+                    for f in range(st.shape[1]):
+                        if st[0, f] != st[nk - 1, f]:
+                            same = False
+                            break
+                    if same:
+                        for k2 in range(1, nk - 1):
+                            for f in range(st.shape[1]):
+                                st[k2, f] = st[0, f]
+                        break
+                _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy,
+                             times[kk], st[kk])  # fmt: skip
 
 
 @nb.njit(cache=True)
@@ -561,7 +568,7 @@ def _segment_exact(
             acc[2] += crosstalk[2, c] * light
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def render_exposure_fast(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
@@ -580,89 +587,91 @@ def render_exposure_fast(
     n_proj = projs.shape[0]
     last = KNOTS - 1
     seg_samples = max(samples // last, 4)
-    for i in nb.prange(row_lo, row_hi):
-        wbuf = np.empty(3)
-        w3 = np.empty(3)
-        acc = np.empty(3)
+    wbuf = np.empty(3)
+    w3 = np.empty(3)
+    acc = np.empty(3)
+    for i in range(row_lo, row_hi):
         ii = i - r0
         n_mc = 0
         for j in range(w):
-            if not (0 < i < h - 1 and 0 < j < w - 1):
+            acc[0] = 0.0  # element-wise: a slice assignment costs seconds of compilation
+            acc[1] = 0.0
+            acc[2] = 0.0
+            border = not (0 < i < h - 1 and 0 < j < w - 1)
+            smooth_k = 0
+            static = True
+            if not border:
+                st = states[ii, j]
+                # smooth at a knot: the 3x3 neighbourhood sees one primitive, lit alike
+                for kk in range(KNOTS):
+                    ok = True
+                    sig = st[kk, 0]
+                    alb = st[kk, 1]
+                    for di in range(-1, 2):
+                        for dj in range(-1, 2):
+                            if (
+                                states[ii + di, j + dj, kk, 0] != sig
+                                or abs(states[ii + di, j + dj, kk, 1] - alb) > 1e-9
+                            ):
+                                ok = False
+                    if ok:
+                        smooth_k |= 1 << kk
+                for kk in range(1, KNOTS):
+                    for f in range(st.shape[1]):
+                        if st[kk, f] != st[0, f]:
+                            static = False
+            # border pixels: Monte Carlo over the whole exposure; a static smooth
+            # pixel: one exact segment; else per segment, exact where smooth at
+            # both of its knots (an edge, shadow edge or texture is sampled)
+            whole = border or (static and smooth_k == (1 << KNOTS) - 1)
+            n_seg = 1 if whole else last
+            mc_here = False
+            for seg in range(n_seg):
+                if not border and (whole or (smooth_k >> seg) & 3 == 3):
+                    ka = 0 if whole else seg
+                    kb = last if whole else seg + 1
+                    _segment_exact(
+                        states, ii, j, ka, kb, 1.0 if whole else 1.0 / last, pat_proj,
+                        pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient, n_proj,
+                        w3, wbuf, acc,
+                    )  # fmt: skip
+                    continue
+                if border:
+                    ta, te, k0, ns, div = t0, exposure, 0, samples, 1.0
+                else:
+                    ta = t0 + exposure * seg / last
+                    te = exposure / last
+                    k0 = (seg * seg_samples) % max(samples - seg_samples + 1, 1)
+                    ns = seg_samples
+                    div = float(last)
                 a0, a1, a2 = _pixel_mc(
                     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
                     proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
-                    crosstalk, ambient, t0, exposure, 0, samples, offsets,
+                    crosstalk, ambient, ta, te, k0, ns, offsets,
                 )  # fmt: skip
-                out[i, j, 0] = a0
-                out[i, j, 1] = a1
-                out[i, j, 2] = a2
+                acc[0] += a0 / div
+                acc[1] += a1 / div
+                acc[2] += a2 / div
+                mc_here = True
+            if mc_here:
                 n_mc += 1
-                continue
-            st = states[ii, j]
-            # smooth at a knot: the 3x3 neighbourhood sees one primitive, lit alike
-            smooth_k = 0
-            for kk in range(KNOTS):
-                ok = True
-                sig = st[kk, 0]
-                alb = st[kk, 1]
-                for di in range(-1, 2):
-                    for dj in range(-1, 2):
-                        if (
-                            states[ii + di, j + dj, kk, 0] != sig
-                            or abs(states[ii + di, j + dj, kk, 1] - alb) > 1e-9
-                        ):
-                            ok = False
-                if ok:
-                    smooth_k |= 1 << kk
-            static = True
-            for kk in range(1, KNOTS):
-                for f in range(st.shape[1]):
-                    if st[kk, f] != st[0, f]:
-                        static = False
-            acc[:] = 0.0
-            if static and smooth_k == (1 << KNOTS) - 1:
-                # nothing changes during the exposure: one segment
-                _segment_exact(
-                    states, ii, j, 0, last, 1.0, pat_proj, pat_channel, pat_foot, pat_nfoot,
-                    defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
-                )  # fmt: skip
-            else:
-                mc_here = False
-                for seg in range(last):
-                    if (smooth_k >> seg) & 3 == 3:
-                        _segment_exact(
-                            states, ii, j, seg, seg + 1, 1.0 / last, pat_proj, pat_channel,
-                            pat_foot, pat_nfoot, defocus, crosstalk, ambient, n_proj, w3,
-                            wbuf, acc,
-                        )  # fmt: skip
-                    else:
-                        # an edge, shadow edge or texture inside this segment
-                        a0, a1, a2 = _pixel_mc(
-                            i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre,
-                            proj_size, proj_power, pat_proj, pat_channel, pat_foot,
-                            pat_nfoot, defocus, crosstalk, ambient,
-                            t0 + exposure * seg / last, exposure / last,
-                            (seg * seg_samples) % max(samples - seg_samples + 1, 1),
-                            seg_samples, offsets,
-                        )  # fmt: skip
-                        acc[0] += a0 / last
-                        acc[1] += a1 / last
-                        acc[2] += a2 / last
-                        mc_here = True
-                if mc_here:
-                    n_mc += 1
             out[i, j, 0] = acc[0]
             out[i, j, 1] = acc[1]
             out[i, j, 2] = acc[2]
         mc_count[i] = n_mc
 
 
-@nb.njit(cache=True, parallel=True)
-def render_truth(rays, prims, tex, projs, proj_centre, proj_size, t, depth, obj, lit):
-    """Depth z, object id and per-projector lit bits at the pixel centres at time ``t``."""
-    h, w = rays.shape[:2]
+@nb.njit(cache=True, nogil=True)
+def render_truth(
+    rays, prims, tex, projs, proj_centre, proj_size, t, row_lo, row_hi, depth, obj, lit
+):  # fmt: skip
+    """Depth z, object id and per-projector lit bits at the pixel centres at time ``t``.
+
+    For image rows ``row_lo .. row_hi`` of ``depth``, ``obj`` and ``lit`` (h, w).
+    """
+    w = rays.shape[1]
     n_proj = projs.shape[0]
-    for i in nb.prange(h):
+    for i in range(row_lo, row_hi):
         for j in range(w):
             dx = rays[i, j, 0]
             dy = rays[i, j, 1]

@@ -7,8 +7,10 @@ attaches the ground truth of each frame as ``frame.extras["truth"]``.
 
 from __future__ import annotations
 
+import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -59,6 +61,34 @@ def _undistorted_rays(K, dist, width, height):
     xy = cv2.undistortPointsIter(pix, K, np.asarray(dist, np.float64), None, None, crit)
     xy = xy.reshape(height, width, 2)
     return np.concatenate([xy, np.ones((height, width, 1))], axis=2)
+
+
+def render_threads() -> int:
+    """Threads the renderer uses: one per core this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def run_row_bands(
+    task: Callable[[int, int], None], height: int, band_rows: int, threads: int | None = None
+) -> None:
+    """Call ``task(lo, hi)`` for bands of at most ``band_rows`` image rows, on ``threads`` threads.
+
+    The renderer's kernels release the GIL, so threads render bands side by
+    side; the bands write disjoint rows.  An exception in any band is raised
+    here.  ``threads`` defaults to one per core.
+    """
+    bands = [(lo, min(lo + band_rows, height)) for lo in range(0, height, band_rows)]
+    threads = min(threads or render_threads(), len(bands))
+    if threads <= 1:
+        for lo, hi in bands:
+            task(lo, hi)
+        return
+    with ThreadPoolExecutor(threads, thread_name_prefix="render") as pool:
+        for future in [pool.submit(task, lo, hi) for lo, hi in bands]:
+            future.result()
 
 
 def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
@@ -247,8 +277,10 @@ class SceneRenderer:
         #: fraction of pixels the last :meth:`radiance` sampled by Monte Carlo
         self.last_mc_fraction = 0.0
 
-    #: image rows per band of the fast form (bounds the memory of the knot states)
-    BAND_ROWS = 96
+    #: image rows per band (a task of one thread; bounds the memory of the knot states)
+    BAND_ROWS = 32
+    #: threads to render with (None: one per core)
+    threads: int | None = None
 
     def radiance(self, t0: float, exposure_s: float, exact: bool = False) -> np.ndarray:
         """Noise-free mean image (float DN) of the exposure starting at ``t0``.
@@ -272,33 +304,34 @@ class SceneRenderer:
         defocus = np.full(len(self.rig.projectors), s.projector_defocus_px)
         crosstalk = np.array(s.crosstalk)
         ambient = np.full(3, s.ambient_dn * gain)
+        shared = (
+            self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
+            self.proj_centre, self.proj_size, power, self.pat_proj, self.pat_channel,
+            self.pat_foot, self.pat_nfoot, defocus, crosstalk, ambient, t0, exposure_s,
+            s.samples, self.offsets,
+        )  # fmt: skip
         if exact:
-            render_exposure(
-                self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-                self.proj_centre, self.proj_size, power, self.pat_proj,
-                self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
-                ambient, t0, exposure_s, s.samples, self.offsets, out,
-            )  # fmt: skip
+
+            def band(lo: int, hi: int) -> None:
+                render_exposure(*shared, lo, hi, out)
+
+            run_row_bands(band, cam.height, self.BAND_ROWS, self.threads)
             self.last_mc_fraction = 1.0
         else:
             times = t0 + exposure_s * np.linspace(0.0, 1.0, KNOTS)
             n_fields = 2 + 2 * len(self.rig.projectors)
             mc = np.zeros(cam.height, dtype=np.int64)
-            for lo in range(0, cam.height, self.BAND_ROWS):
-                hi = min(lo + self.BAND_ROWS, cam.height)
+
+            def band(lo: int, hi: int) -> None:
                 # one row of halo each side: smoothness looks at the 3x3 neighbours
                 states = np.zeros((hi - lo + 2, cam.width, KNOTS, n_fields))
                 knot_states(
                     self.rays, prims, self.texture, self.projs, self.proj_centre,
                     self.proj_size, power, times, lo - 1, states,
                 )  # fmt: skip
-                render_exposure_fast(
-                    self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
-                    self.proj_centre, self.proj_size, power, self.pat_proj,
-                    self.pat_channel, self.pat_foot, self.pat_nfoot, defocus, crosstalk,
-                    ambient, t0, exposure_s, s.samples, self.offsets, states, lo - 1,
-                    lo, hi, out, mc,
-                )  # fmt: skip
+                render_exposure_fast(*shared, states, lo - 1, lo, hi, out, mc)
+
+            run_row_bands(band, cam.height, self.BAND_ROWS, self.threads)
             self.last_mc_fraction = float(mc.sum()) / (cam.width * cam.height)
         return lens_blur(out, s.lens_psf, s.lens_blur_px)
 
@@ -318,11 +351,30 @@ class SceneRenderer:
         depth = np.empty((cam.height, cam.width))
         obj = np.empty((cam.height, cam.width), dtype=np.uint8)
         lit = np.empty((cam.height, cam.width), dtype=np.uint8)
-        render_truth(
-            self.rays, self.scene.primitives(t), self.texture, self.projs, self.proj_centre,
-            self.proj_size, t, depth, obj, lit,
-        )  # fmt: skip
+        prims = self.scene.primitives(t)
+
+        def band(lo: int, hi: int) -> None:
+            render_truth(
+                self.rays, prims, self.texture, self.projs, self.proj_centre, self.proj_size,
+                t, lo, hi, depth, obj, lit,
+            )  # fmt: skip
+
+        run_row_bands(band, cam.height, 4 * self.BAND_ROWS, self.threads)
         return GroundTruth(depth.astype(np.float32), obj, lit, self.scene.planar)
+
+
+def warm_up_renderer(rig: Rig, scene: str) -> float:
+    """Compile (or load from numba's cache) the renderer's kernels on a tiny image; seconds.
+
+    The kernels depend on the argument types only, so any rig and scene will do.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    renderer = SceneRenderer(rig.scaled(32 / rig.camera.width), get_scene(scene))
+    renderer.radiance(0.0, renderer.scene.exposure_s)
+    renderer.truth(0.0)
+    return time.perf_counter() - t0
 
 
 class SyntheticCamera(Camera):
@@ -369,14 +421,54 @@ class SyntheticCamera(Camera):
         self.sensor = sensor
         self.start_s = start_s
         self._renderer: SceneRenderer | None = None
+        self._rng = np.random.default_rng(seed)
+        self._ahead: list[Frame] = []
         self._stop = threading.Event()
 
     def open(self) -> None:
-        self._renderer = SceneRenderer(self.rig, self.scene, self.sensor)
+        """Set up the renderer; frames rendered ahead (:meth:`render_ahead`) are kept."""
+        if self._renderer is None:
+            self._renderer = SceneRenderer(self.rig, self.scene, self.sensor)
         self._stop.clear()
 
     def close(self) -> None:
         self._renderer = None
+        self._ahead = []
+
+    def render_ahead(self, n: int = 1, threads: int | None = None) -> int:
+        """Render the next ``n`` of the first frames now (opening the camera if needed).
+
+        The next :meth:`frames` yields them first, then renders on from there
+        (the same frames as without this).  A first run compiles the renderer
+        here, before a pipeline waits for frames.  ``threads``: render with
+        that many threads (default one per core).  Returns how many frames
+        were rendered (fewer at the end of a finite scene).
+        """
+        self.open()
+        if not self._ahead:
+            self._rng = np.random.default_rng(self.seed)
+        self._renderer.threads = threads
+        try:
+            for k in range(n):
+                i = len(self._ahead)
+                if self.n_frames is not None and i >= self.n_frames:
+                    return k
+                self._ahead.append(self._render(i, self._rng))
+        finally:
+            self._renderer.threads = None
+        return n
+
+    @property
+    def frames_ahead(self) -> int:
+        """How many frames :meth:`render_ahead` has rendered that frames() has not yet yielded."""
+        return len(self._ahead)
+
+    def _render(self, i: int, rng: np.random.Generator) -> Frame:
+        t0 = self.start_s + i / self.fps
+        exposure = self._exposure
+        image = self._renderer.expose(self._renderer.radiance(t0, exposure), rng)
+        truth = self._renderer.truth(t0 + exposure / 2)
+        return Frame(i, t0, exposure, image, f"{i:06d}", {"truth": truth})
 
     @property
     def size(self) -> tuple[int, int]:
@@ -398,14 +490,12 @@ class SyntheticCamera(Camera):
     def frames(self) -> Iterator[Frame]:
         if self._renderer is None:
             raise DriverError(f"{self.uri}: camera is not open")
-        rng = np.random.default_rng(self.seed)
+        # every call starts at the first frame, from the frames rendered ahead if any
+        ahead, self._ahead = self._ahead, []
+        rng = self._rng if ahead else np.random.default_rng(self.seed)
         i = 0
         while (self.n_frames is None or i < self.n_frames) and not self._stop.is_set():
-            t0 = self.start_s + i / self.fps
-            exposure = self._exposure
-            image = self._renderer.expose(self._renderer.radiance(t0, exposure), rng)
-            truth = self._renderer.truth(t0 + exposure / 2)
-            yield Frame(i, t0, exposure, image, f"{i:06d}", {"truth": truth})
+            yield ahead[i] if i < len(ahead) else self._render(i, rng)
             i += 1
             if self.realtime and self._stop.wait(1.0 / self.fps):
                 break

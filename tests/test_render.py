@@ -137,3 +137,22 @@ def test_gamma_and_disk_blur_change_the_image():
     mid = (a > 20) & (a < 120)
     expected = 255 * (a[mid] / 255) ** (1 / 2.2)
     assert np.abs(b[mid] - expected).max() < 1.5
+
+
+def test_frames_rendered_ahead_are_the_same_frames():
+    from lightflow.drivers.synthetic import SyntheticCamera
+
+    rig = resolve_rig("two-projector").scaled(SCALE)
+    plain = SyntheticCamera(rig, "ball-wall", frames=3, fps=24)
+    with plain:
+        want = list(plain.frames())
+    ahead = SyntheticCamera(rig, "ball-wall", frames=3, fps=24)
+    assert ahead.render_ahead(2, threads=1) == 2
+    assert ahead.frames_ahead == 2
+    with ahead:
+        got = list(ahead.frames())
+    assert [f.index for f in got] == [0, 1, 2]
+    for a, b in zip(want, got, strict=True):
+        assert np.array_equal(a.image, b.image)  # same noise draws, in the same order
+        assert np.array_equal(a.extras["truth"].depth, b.extras["truth"].depth, equal_nan=True)
+    assert ahead.render_ahead(5) == 3  # a finite scene ends

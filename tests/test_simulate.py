@@ -135,3 +135,16 @@ def test_demo_no_save_without_a_viewer_is_one_line(monkeypatch, capsys):
     assert cli_main(["demo", "--no-save", "--frames", "1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("lightflow: error: --no-save") and err.count("\n") == 1
+
+
+def test_demo_streams_frames_into_an_rrd(tmp_path, capsys):
+    # a small camera: the same steps as the default demo (tables, depth table,
+    # renderer, pipeline warm-up with frames rendered ahead, streaming)
+    out = tmp_path / "out"
+    args = ["demo", "--frames", "3", "--scale", "0.2", "--no-viewer", "--out", str(out)]
+    assert cli_main(args) == 0
+    text = capsys.readouterr().out
+    for step in ("[1/4]", "[2/4]", "[3/4]", "[4/4]", "first depth picture after"):
+        assert step in text
+    assert "Rerun: 3 frames" in text
+    assert (out / "demo.rrd").stat().st_size > 0
