@@ -264,7 +264,8 @@ def end_to_end(rig, pipeline, frames, n: int) -> list[str]:
         with camera:
             stats = runner.run()
         wall = time.perf_counter() - t
-        exported = len(list(out.glob("*.npy")))
+        # depth maps, not their <frame>_std.npy companions
+        exported = len([f for f in out.glob("*.npy") if not f.stem.endswith("_std")])
     per_frame = wall / n * 1e3
     sequential = float(np.median(decode_ms) + np.median(pipeline_ms) + np.median(export.write_ms))
     return [
