@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -150,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
     print(
         f"rig {args.rig}: camera {cam.width}x{cam.height}, {len(rig.projectors)} projector(s),"
-        f" scene {args.scene}, stride {config.stride}"
+        f" scene {args.scene}, stride {config.stride}; {_load()}"
     )
     n_render = 2
     camera = SyntheticCamera(rig, args.scene, frames=n_render)
@@ -201,7 +202,14 @@ def run(args: argparse.Namespace) -> int:
                 print(line)
     if args.recorder:
         _run_recorder()
+    print(f"\nat the end: {_load()}")
     return 0
+
+
+def _load() -> str:
+    """The machine's load average: other work on the cores changes every figure."""
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.1f} (1 min), {five:.1f} (5 min) on {os.cpu_count()} cores"
 
 
 class _TimedExport:
