@@ -62,7 +62,8 @@ def test_capture_synthetic_board(small_rig_file, tmp_path, capsys):
     assert check_recording(rec, 2) == ["000000", "000001"]
     assert read_recording(rec).exposure_s == pytest.approx(0.015)
     assert rrd_frames(rrd) == {0, 1}
-    assert sorted(p.name for p in depth.iterdir()) == ["000000.npy", "000001.npy"]
+    assert sorted(p.name for p in depth.iterdir()) == [
+        "000000.npy", "000000_std.npy", "000001.npy", "000001_std.npy"]
     assert "processed 2 of 2 frames" in err
     assert f"recording: 2 frames in {rec}" in out
 

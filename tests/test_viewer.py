@@ -23,6 +23,7 @@ import psutil
 import pytest
 from rerun.experimental import ViewerClient
 
+from lightflow.app.causes import DEPTH, NO_LINES, STATIC, count_causes
 from lightflow.app.results import BandSet, FrameResult, RunStats
 from lightflow.app.rig import load_rig
 from lightflow.app.sinks.rerun_sink import RerunSink, disable_viewer_analytics, rerun_binary
@@ -55,11 +56,17 @@ def disc_result(rig, index: int) -> FrameResult:
         BandSet("blue", rows, np.full_like(rows, cx + 5), np.full_like(rows, cx + 14), on_disc),
     ]
     grid = np.where(disc[2::4, 2::4], 14.0, np.nan).astype(np.float32)
+    # depth on the disc; around it a static wall, and no lines in its shadow on the right
+    causes_grid = np.where(disc[2::4, 2::4], DEPTH, STATIC).astype(np.uint8)
+    causes_grid[:, -causes_grid.shape[1] // 5:] = NO_LINES
     return FrameResult(
         Frame(index, 1.0 + index / 30, 0.02, image), depth, [grid, grid * 0.5],
         np.log(grid / (grid * 0.5)), bands, 4,
         timings_ms={"total": 30_000.0 if index == 0 else 40.0 + index},
         coverage=float(disc.mean()),
+        depth_std=np.where(disc, 0.004 + 0.02 * np.abs(xx - cx) / w, np.nan).astype(np.float32),
+        causes_grid=causes_grid,
+        cause_counts=count_causes(causes_grid),
     )  # fmt: skip
 
 
@@ -205,7 +212,7 @@ def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
         [recording] = state.recordings
         frame = next(t for t in recording.timelines if t.name == "frame")
         assert (frame.start, frame.end) == (0, 2)
-        assert len(state.views) == 13
+        assert len(state.views) == 16
         client.take_screenshot(max_size=256)  # every view painted once: reports are current
         state = client.get_state()
         assert not [(v.name, v.reports) for v in state.views if v.reports]

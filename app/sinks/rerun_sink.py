@@ -13,6 +13,10 @@ Entity layout (all per frame on the ``frame`` timeline, plus ``camera_time``)::
                                  hide them in 3D), coloured by depth like the depth image
     flow/<ch>, flow/log_ratio    the light flows in projector px, and their log ratio, as
                                  colour-mapped images with a fixed range (named in the view)
+    uncertainty/depth_std        predicted depth standard deviation, colour-mapped 0-30 mm
+    causes                       SegmentationImage: per grid pixel, depth or why none (the
+                                 annotation context names each cause; hover to read it)
+    stats/no_depth               BarChart: % of grid pixels per cause, in cause order
     stats/rate/fps, stats/rate/mib_per_s           rates
     stats/time_ms/latency|processing               milliseconds (the first frame, dominated
                                                    by compilation, is left out of the plot)
@@ -21,7 +25,6 @@ Entity layout (all per frame on the ``frame`` timeline, plus ``camera_time``)::
     stats/lost/...               counts: dropped frames/results, camera losses, counters
     log                          TextLog: what the plots leave out (first-frame timing)
 
-The result carries no per-pixel uncertainty, so none is shown.
 
 Network: ``serve`` and ``spawn`` run the Rerun binary as a child process bound to
 127.0.0.1 only; the SDK's own ``serve_grpc`` has no bind option and listens on
@@ -48,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lightflow.app.causes import CAUSES
 from lightflow.app.errors import ConfigError, DriverError
 from lightflow.app.evaluation import evaluate_frame
 from lightflow.app.geometry import camera_rays
@@ -73,6 +77,14 @@ READY_TIMEOUT_S = 30.0
 DEPTH_RANGE_M = (0.4, 1.2)
 #: colour range of the log flow ratio (dimensionless)
 LOG_RATIO_RANGE = (-1.0, 1.0)
+#: colour range of the predicted depth error (mm)
+STD_RANGE_MM = 30.0
+#: colour of each cause of no depth (code order: depth, no lines, faint, cut, overlap,
+#: irregular, static, out of model range, blur not fitted, inconsistent, uncertain,
+#: out of depth range)
+CAUSE_COLOURS = ((0, 200, 0), (40, 40, 40), (120, 120, 200), (230, 120, 30), (200, 0, 200),
+                 (230, 200, 0), (90, 90, 90), (255, 0, 0), (0, 200, 200), (160, 60, 0),
+                 (255, 130, 180), (255, 255, 255))  # fmt: skip
 COLORMAP = "turbo"
 #: opacity of the depth colours over the camera image (0-255)
 OVERLAY_ALPHA = 170
@@ -453,6 +465,10 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
     details.append(
         rrb.Spatial2DView(origin="flow/log_ratio", name=f"log flow ratio {r_lo:g} to {r_hi:g}")
     )
+    details.append(rrb.Spatial2DView(
+        origin="uncertainty", name=f"predicted depth error (1 sigma) 0-{STD_RANGE_MM:g} mm",
+    ))  # fmt: skip
+    details.append(rrb.Spatial2DView(origin="causes", name="no depth: why (hover a colour)"))
 
     def plot(origin: str, name: str, **kwargs) -> rrb.TimeSeriesView:
         # no legend over the plot: series sharing a plot have fixed colours named in the title
@@ -466,6 +482,8 @@ def make_blueprint(rig: Rig, flow_range_px: tuple[float, float],
         plot("stats/coverage", "%: blue depth on image, green coverage"),
         plot("stats/lost", "lost: orange dropped, red camera, grey other"),
         plot("stats/rate/mib_per_s", "data rate (MiB/s)"),
+        rrb.BarChartView(origin="stats/no_depth",
+                         name="% of pixels per cause (bar i: cause i, as in the causes view)"),
         rrb.TextLogView(origin="log", name="notes"),
         grid_columns=2,
     )
@@ -598,6 +616,11 @@ class RerunSink:
         cam = self.rig.camera
         rec = self.rec
         rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        # hovering the causes image names the cause of each pixel
+        rec.log("causes", rr.AnnotationContext([
+            rr.AnnotationInfo(id=code, label=f"{name}: {meaning}", color=CAUSE_COLOURS[code])
+            for code, (name, meaning) in enumerate(CAUSES)
+        ]), static=True)  # fmt: skip
         # the camera sits at the world origin; its pose is logged apart from the pinhole
         # so that a moving camera (or a world frame) only changes this transform
         rec.log("world/camera", rr.Transform3D(translation=[0.0, 0.0, 0.0]), static=True)
@@ -643,6 +666,11 @@ class RerunSink:
         for channel, flow in zip(self._channels, result.flows_grid, strict=False):
             rec.log(f"flow/{channel}", rr.Image(turbo_rgb(flow, lo, hi)))
         rec.log("flow/log_ratio", rr.Image(turbo_rgb(result.log_ratio_grid, *LOG_RATIO_RANGE)))
+        if result.depth_std is not None:
+            std_mm = result.depth_std[:: result.stride, :: result.stride] * 1e3
+            rec.log("uncertainty/depth_std", rr.Image(turbo_rgb(std_mm, 0.0, STD_RANGE_MM)))
+        if result.causes_grid is not None:
+            rec.log("causes", rr.SegmentationImage(result.causes_grid))
         # Rerun treats depth 0 as "no measurement"; hovering shows metres
         depth = np.nan_to_num(result.depth.astype(np.float32), nan=0.0)
         rec.log("world/camera/depth", rr.DepthImage(
@@ -685,6 +713,9 @@ class RerunSink:
             if processing is not None:
                 rec.log("stats/time_ms/processing", rr.Scalars(processing))
         rec.log("stats/coverage/depth_on_image", rr.Scalars(100.0 * result.coverage))
+        if result.cause_counts is not None:
+            counts = result.cause_counts
+            rec.log("stats/no_depth", rr.BarChart(100.0 * counts / max(1, counts.sum())))
         truth = result.frame.extras.get("truth")
         if truth is not None:
             m = evaluate_frame(result.depth, truth, n_projectors=len(self.rig.projectors))
