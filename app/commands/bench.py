@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.errors import ConfigError, LightflowError
 
 DESCRIPTION = """\
 Measure how long the depth pipeline takes per frame, stage by stage, at the
@@ -197,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
         if rig.single_projector:
             print("\nreference comparison: skipped (the reference needs a two-projector rig)")
         else:
-            for line in versus_reference(rig, args.rig, pipeline, frames, args.compare_frames,
+            for line in versus_reference(rig, pipeline, frames, args.compare_frames,
                                          args.compare_repeats, config.stride):  # fmt: skip
                 print(line)
     if args.recorder:
@@ -303,7 +303,7 @@ def _write_recording(path, rig, frames, n: int) -> None:
             writer.write(dataclasses.replace(f, index=i, timestamp=i * period, name=""))
 
 
-def versus_reference(rig, rig_arg, pipeline, frames, n: int, repeats: int, stride: int):
+def versus_reference(rig, pipeline, frames, n: int, repeats: int, stride: int):
     """Marginal time per frame of ``replay --export-depth`` and of the plain reference.
 
     Both replay an ``n``-frame and a 2-frame recording of ``frames``;
@@ -338,7 +338,8 @@ def versus_reference(rig, rig_arg, pipeline, frames, n: int, repeats: int, strid
                 proc = subprocess.run(cmd, capture_output=True, text=True)
                 wall = time.perf_counter() - t
                 if proc.returncode != 0:
-                    raise ConfigError(f"bench: lightflow replay failed: {proc.stderr.strip()}")
+                    last = (proc.stderr.strip().splitlines() or ["no message"])[-1]
+                    raise LightflowError(f"bench: lightflow replay {recs[k]} failed: {last}")
                 best["replay", k] = min(best["replay", k], wall)
                 done += 1
                 _progress("replay vs reference", done, total)
