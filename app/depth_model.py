@@ -373,35 +373,57 @@ def load_or_build_lut(
 
 
 @nb.njit(cache=True, parallel=True)
-def _lookup(logr, h0, inv_dh, table, out):
+def _lookup(logr, offsets, h0, inv_dh, table, out):
+    """``out[q]``: depth at ``logr + offsets[q]``; each pixel's table row is read once."""
     gh, gw = logr.shape
     m = table.shape[2]
     for i in nb.prange(gh):
         for j in range(gw):
-            h = logr[i, j]
             k = inv_dh[i, j]
-            if not (k > 0.0) or not np.isfinite(h):
-                out[i, j] = np.nan
-                continue
-            t = (h - h0[i, j]) * k
-            if t < 0.0 or t > m - 1:
-                out[i, j] = np.nan
-                continue
-            # Catmull-Rom through the uniform samples (clamped at the ends)
-            j1 = min(int(t), m - 2)
-            f = t - j1
-            p1 = table[i, j, j1]
-            p2 = table[i, j, j1 + 1]
-            p0 = table[i, j, j1 - 1] if j1 > 0 else 2 * p1 - p2
-            p3 = table[i, j, j1 + 2] if j1 + 2 < m else 2 * p2 - p1
-            inv_z = p1 + 0.5 * f * (
-                p2 - p0 + f * (2 * p0 - 5 * p1 + 4 * p2 - p3 + f * (3 * (p1 - p2) + p3 - p0))
-            )
-            out[i, j] = 1.0 / inv_z
+            for q in range(offsets.shape[0]):
+                h = logr[i, j] + offsets[q]
+                if not (k > 0.0) or not np.isfinite(h):
+                    out[q, i, j] = np.nan
+                    continue
+                t = (h - h0[i, j]) * k
+                if t < 0.0 or t > m - 1:
+                    out[q, i, j] = np.nan
+                    continue
+                # Catmull-Rom through the uniform samples (clamped at the ends)
+                j1 = min(int(t), m - 2)
+                f = t - j1
+                p1 = table[i, j, j1]
+                p2 = table[i, j, j1 + 1]
+                p0 = table[i, j, j1 - 1] if j1 > 0 else 2 * p1 - p2
+                p3 = table[i, j, j1 + 2] if j1 + 2 < m else 2 * p2 - p1
+                inv_z = p1 + 0.5 * f * (
+                    p2 - p0 + f * (2 * p0 - 5 * p1 + 4 * p2 - p3 + f * (3 * (p1 - p2) + p3 - p0))
+                )
+                out[q, i, j] = 1.0 / inv_z
 
 
-def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray) -> np.ndarray:
-    """Depth ``z`` (metres) for a grid map of measured log flow ratios; NaN outside the LUT."""
-    out = np.empty(log_ratio.shape, dtype=np.float32)
-    _lookup(log_ratio.astype(np.float32, copy=False), lut.h0, lut.inv_dh, lut.table, out)
-    return out
+def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray, offsets=None) -> np.ndarray:
+    """Depth ``z`` (metres) for a grid map of measured log flow ratios; NaN outside the LUT.
+
+    Parameters
+    ----------
+    lut : DepthLUT
+    log_ratio : numpy.ndarray
+        ``(h, w)`` log flow ratios.
+    offsets : sequence of float, optional
+        Look up ``log_ratio + offset`` for each offset instead, in one pass over
+        the table (the same values as ``lookup_depth(lut, log_ratio + offset)``).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w)`` float32, or ``(len(offsets), h, w)`` with ``offsets``.
+    """
+    if offsets is not None and log_ratio.dtype != np.float32:
+        # the sums in float64 first, as numpy forms them, then each map on its own
+        return np.stack([lookup_depth(lut, log_ratio + off) for off in offsets])
+    logr = log_ratio.astype(np.float32, copy=False)
+    offs = np.zeros(1, np.float32) if offsets is None else np.asarray(offsets, np.float32)
+    out = np.empty((len(offs), *log_ratio.shape), dtype=np.float32)
+    _lookup(logr, offs, lut.h0, lut.inv_dh, lut.table, out)
+    return out[0] if offsets is None else out

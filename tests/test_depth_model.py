@@ -112,6 +112,26 @@ def test_flow_ratio_outside_the_table_has_no_depth(name, luts):
     assert np.all((inside[ok] >= RANGE.near * 0.999) & (inside[ok] <= RANGE.far * 1.001))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_lookup_with_offsets_equals_one_lookup_per_offset(luts, dtype):
+    """One pass over the table for several offsets gives each lookup's values exactly."""
+    lut = luts["two-projector"]
+    ok = lut.usable
+    span = np.zeros(lut.h0.shape)
+    span[ok] = (LUT_SAMPLES - 1) / lut.inv_dh[ok].astype(np.float64)
+    rng = np.random.default_rng(3)
+    # inside, near both ends and outside the table, and pixels without a ratio
+    t = rng.uniform(-0.05, 1.05, lut.h0.shape)
+    grid = np.where(ok & (rng.random(lut.h0.shape) > 0.2), lut.h0 + t * span, np.nan).astype(dtype)
+    eps = 1e-3
+    both = lookup_depth(lut, grid, offsets=(eps, -eps, 0.0))
+    assert both.shape == (3, *grid.shape) and both.dtype == np.float32
+    for k, expected in enumerate([lookup_depth(lut, grid + eps), lookup_depth(lut, grid - eps),
+                                  lookup_depth(lut, grid)]):  # fmt: skip
+        assert np.array_equal(both[k], expected, equal_nan=True)
+    assert np.count_nonzero(np.isfinite(both[0])) > 0.5 * np.count_nonzero(ok)
+
+
 # ------------------------------------------------------------------ independent h
 
 

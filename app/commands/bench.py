@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.errors import ConfigError, LightflowError
 
 DESCRIPTION = """\
 Measure how long the depth pipeline takes per frame, stage by stage, at the
@@ -150,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
     print(
         f"rig {args.rig}: camera {cam.width}x{cam.height}, {len(rig.projectors)} projector(s),"
-        f" scene {args.scene}, stride {config.stride}"
+        f" scene {args.scene}, stride {config.stride}; {_load()}"
     )
     n_render = 2
     camera = SyntheticCamera(rig, args.scene, frames=n_render)
@@ -196,12 +197,19 @@ def run(args: argparse.Namespace) -> int:
         if rig.single_projector:
             print("\nreference comparison: skipped (the reference needs a two-projector rig)")
         else:
-            for line in versus_reference(rig, args.rig, pipeline, frames, args.compare_frames,
+            for line in versus_reference(rig, pipeline, frames, args.compare_frames,
                                          args.compare_repeats, config.stride):  # fmt: skip
                 print(line)
     if args.recorder:
         _run_recorder()
+    print(f"\nat the end: {_load()}")
     return 0
+
+
+def _load() -> str:
+    """The machine's load average: other work on the cores changes every figure."""
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.1f} (1 min), {five:.1f} (5 min) on {os.cpu_count()} cores"
 
 
 class _TimedExport:
@@ -264,7 +272,8 @@ def end_to_end(rig, pipeline, frames, n: int) -> list[str]:
         with camera:
             stats = runner.run()
         wall = time.perf_counter() - t
-        exported = len(list(out.glob("*.npy")))
+        # depth maps, not their <frame>_std.npy companions
+        exported = len([f for f in out.glob("*.npy") if not f.stem.endswith("_std")])
     per_frame = wall / n * 1e3
     sequential = float(np.median(decode_ms) + np.median(pipeline_ms) + np.median(export.write_ms))
     return [
@@ -294,7 +303,7 @@ def _write_recording(path, rig, frames, n: int) -> None:
             writer.write(dataclasses.replace(f, index=i, timestamp=i * period, name=""))
 
 
-def versus_reference(rig, rig_arg, pipeline, frames, n: int, repeats: int, stride: int):
+def versus_reference(rig, pipeline, frames, n: int, repeats: int, stride: int):
     """Marginal time per frame of ``replay --export-depth`` and of the plain reference.
 
     Both replay an ``n``-frame and a 2-frame recording of ``frames``;
@@ -329,7 +338,8 @@ def versus_reference(rig, rig_arg, pipeline, frames, n: int, repeats: int, strid
                 proc = subprocess.run(cmd, capture_output=True, text=True)
                 wall = time.perf_counter() - t
                 if proc.returncode != 0:
-                    raise ConfigError(f"bench: lightflow replay failed: {proc.stderr.strip()}")
+                    last = (proc.stderr.strip().splitlines() or ["no message"])[-1]
+                    raise LightflowError(f"bench: lightflow replay {recs[k]} failed: {last}")
                 best["replay", k] = min(best["replay", k], wall)
                 done += 1
                 _progress("replay vs reference", done, total)
