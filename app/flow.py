@@ -127,23 +127,6 @@ BLUR_POOL_FRAMES = 8
 BLUR_REL_ERROR = 0.1
 
 
-@nb.njit(cache=True, inline="always")
-def _sweep_of(m, r, line, sigma, m_max, inv, inv_m, s_lo, s_step, w_step, m_step, r_step,
-              blur_known):  # fmt: skip
-    """The sweep (camera px) of a band of width ``m`` and ramp ``r``; NaN if it cannot be read."""
-    if m >= m_max:
-        # far beyond line width and blur: the width at half height is the sweep
-        return m
-    if m > line + 4.0 * sigma + 2.0:
-        # a long band: its ramps are the line edge, its width alone decides
-        # (the same answer as the joint inverse, for half the memory reads)
-        return trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
-    if blur_known:
-        # width and ramp together: a sweep shorter than the line shows in the ramps
-        return joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sigma, line, m, r)
-    return np.nan
-
-
 @nb.njit(cache=True, parallel=True)
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
@@ -201,10 +184,33 @@ def _sweeps(
                 # camera blur is isotropic: along a row it widens a slanted edge
                 sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
                 r = grids[p, 2, i, j]
-                L = _sweep_of(m, r, line, sigma, m_max, inv, inv_m, s_lo, s_step, w_step,
-                              m_step, r_step, blur_known)  # fmt: skip
+                short = not (m >= m_max or m > line + 4.0 * sigma + 2.0)
+                L = np.nan
+                spread = 0.0  # the sweep's change for a blur off by +-BLUR_REL_ERROR
+                if m >= m_max:
+                    # far beyond line width and blur: the width at half height is the sweep
+                    L = m
+                elif not short:
+                    # a long band: its ramps are the line edge, its width alone decides
+                    # (the same answer as the joint inverse, for half the memory reads)
+                    L = trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
+                elif blur_known:
+                    # width and ramp together: a sweep shorter than the line shows in the
+                    # ramps, and there it depends on the blur: read it at three blurs
+                    lo = np.nan
+                    for k in range(3):
+                        sg = sigma * (1.0 + (k - 1) * BLUR_REL_ERROR)
+                        v = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sg, line, m, r)
+                        if k == 0:
+                            lo = v
+                        elif k == 1:
+                            L = v
+                        elif np.isfinite(v) and np.isfinite(lo):
+                            spread = 0.5 * (v - lo)
+                        else:
+                            spread = L - lo_factor * line  # at the edge of the tables
                 if not np.isfinite(L):
-                    if not blur_known and m <= line + 4.0 * sigma + 2.0:
+                    if not blur_known and short:
                         # a band no wider than its line is static (or too short to tell);
                         # a wider one is a short sweep that needs the fitted blur
                         why[i, j] = cz.BLUR_UNKNOWN if m > line + 1.0 else cz.STATIC
@@ -219,14 +225,7 @@ def _sweeps(
                 if L + line + 2.0 * sigma > B:
                     why[i, j] = cz.OVERLAP  # swept line and its blur fill the interval
                     break
-                hi = _sweep_of(m, r, line, sigma * (1.0 + BLUR_REL_ERROR), m_max, inv, inv_m,
-                               s_lo, s_step, w_step, m_step, r_step, blur_known)  # fmt: skip
-                lo = _sweep_of(m, r, line, sigma * (1.0 - BLUR_REL_ERROR), m_max, inv, inv_m,
-                               s_lo, s_step, w_step, m_step, r_step, blur_known)  # fmt: skip
-                if np.isfinite(hi) and np.isfinite(lo):
-                    sens[p, i, j] = 0.5 * (hi - lo) / B
-                else:
-                    sens[p, i, j] = (L - lo_factor * line) / B  # at the edge of the tables
+                sens[p, i, j] = spread / B
                 sweeps[p, i, j] = L / B
                 moving_at[p, i, j] = (static_factor * line + static_margin) / B
                 pitch[p, i, j] = P
