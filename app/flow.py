@@ -196,17 +196,14 @@ def _sweeps(
                     L = trilinear_at(inv_m, s_lo, s_step, w_step, m_step, sigma, line, m)
                 elif blur_known:
                     # width and ramp together: a sweep shorter than the line shows in the
-                    # ramps, and there it depends on the blur: read it at three blurs
-                    lo = np.nan
-                    for k in range(3):
-                        sg = sigma * (1.0 + (k - 1) * BLUR_REL_ERROR)
+                    # ramps, and there it depends on the blur: read it at two blurs
+                    for k in range(2):
+                        sg = sigma * (1.0 + k * BLUR_REL_ERROR)
                         v = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sg, line, m, r)
                         if k == 0:
-                            lo = v
-                        elif k == 1:
                             L = v
-                        elif np.isfinite(v) and np.isfinite(lo):
-                            spread = 0.5 * (v - lo)
+                        elif np.isfinite(v):
+                            spread = v - L
                         else:
                             spread = L - lo_factor * line  # at the edge of the tables
                 if not np.isfinite(L):
