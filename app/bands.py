@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from .threads import run_rows
+
 #: band fields in the per-row output
 F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT = range(9)
 N_FIELDS = 9
@@ -490,7 +492,6 @@ def band_slants(bands, counts, row_y):
         _slant_row(bands, counts, row_y, i, i - 1 if i > 0 else 1)
 
 
-@nb.njit(cache=True, parallel=True)
 def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=1):
     """Detect the bands of every pattern on the image rows ``row_y``.
 
@@ -512,10 +513,18 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
     counts : (P, R) int64 output
     group : int
     """
+    # groups of rows on a thread per core (the kernel releases the GIL)
+    run_rows(_detect_groups, row_y.shape[0] // group, img, weights, row_y, wins, scale, params,
+             bands, counts, group)  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True)
+def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, group, g0, g1):
+    """:func:`detect_bands` on the row groups ``g0 .. g1``."""
     w = img.shape[1]
     n_p = weights.shape[0]
     v = int(params[4])
-    for g in nb.prange(row_y.shape[0] // group):
+    for g in range(g0, g1):
         x = np.empty((n_p, w))
         thr = np.empty((n_p, 2, w))
         for q in range(group):
@@ -529,15 +538,21 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
                 )
 
 
-@nb.njit(cache=True, parallel=True)
 def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
     """Rasterise ``k`` measured rows per grid cell (:func:`_rasterise_row`) and average them.
 
-    ``out[f, i, j]``: field ``fields[f]`` of grid cell (i, j).
+    ``out[f, i, j]``: field ``fields[f]`` of grid cell (i, j).  Rows of cells run
+    on a thread per core.
     """
+    run_rows(_rasterise_cells, counts.shape[0] // k, bands, counts, k, stride, gw, reach, fields,
+             out)  # fmt: skip
+
+
+@nb.njit(cache=True, nogil=True)
+def _rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, c0, c1):
+    """:func:`rasterise_cells` on the rows of cells ``c0 .. c1``."""
     nf = fields.shape[0]
-    cells = counts.shape[0] // k
-    for i in nb.prange(cells):
+    for i in range(c0, c1):
         tbuf = np.empty(gw)
         if k == 1:
             # one row per cell: rasterised straight into the grid (where the first

@@ -21,6 +21,7 @@ from .bands import (
     F_START,
     F_VALID,
 )
+from .threads import run_rows
 
 DEPTH = 0
 NO_LINES = 1
@@ -68,7 +69,6 @@ def _band_code_cause(code):
     return FAINT  # segments never measured are faint ones
 
 
-@nb.njit(cache=True, parallel=True)
 def band_causes(bands, counts, k, stride, gw, reach, out):
     """Per grid cell, the cause code of the band nearest along its row (``DEPTH`` if valid).
 
@@ -86,8 +86,15 @@ def band_causes(bands, counts, k, stride, gw, reach, out):
     out : numpy.ndarray
         ``(gh, gw)`` uint8 output.
     """
+    # rows of cells on a thread per core (the kernel releases the GIL)
+    run_rows(_band_causes, out.shape[0], bands, counts, k, stride, gw, reach, out)
+
+
+@nb.njit(cache=True, nogil=True)
+def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
+    """:func:`band_causes` on the grid rows ``i0 .. i1``."""
     off = 0.5 * (stride - 1)
-    for i in nb.prange(out.shape[0]):
+    for i in range(i0, i1):
         r = i * k
         n = counts[r]
         q = 0

@@ -34,6 +34,7 @@ from .errors import ConfigError
 from .geometry import camera_rays
 from .patterns import _exp2_step
 from .rig import Rig
+from .threads import run_rows
 
 LUT_VERSION = 4
 #: inverse-depth samples per pixel in the LUT (96 bytes/pixel with the two scalars: 184 MB
@@ -372,12 +373,15 @@ def load_or_build_lut(
     return lut
 
 
-@nb.njit(cache=True, parallel=True)
-def _lookup(logr, offsets, h0, inv_dh, table, out):
-    """``out[q]``: depth at ``logr + offsets[q]``; each pixel's table row is read once."""
-    gh, gw = logr.shape
+@nb.njit(cache=True, nogil=True)
+def _lookup(logr, offsets, h0, inv_dh, table, out, i0, i1):
+    """``out[q]``: depth at ``logr + offsets[q]`` on grid rows ``i0 .. i1``.
+
+    Each pixel's table row is read once.
+    """
+    gw = logr.shape[1]
     m = table.shape[2]
-    for i in nb.prange(gh):
+    for i in range(i0, i1):
         for j in range(gw):
             k = inv_dh[i, j]
             for q in range(offsets.shape[0]):
@@ -425,5 +429,6 @@ def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray, offsets=None) -> np.ndarr
     logr = log_ratio.astype(np.float32, copy=False)
     offs = np.zeros(1, np.float32) if offsets is None else np.asarray(offsets, np.float32)
     out = np.empty((len(offs), *log_ratio.shape), dtype=np.float32)
-    _lookup(logr, offs, lut.h0, lut.inv_dh, lut.table, out)
+    # bands of grid rows on a thread per core (the kernel releases the GIL)
+    run_rows(_lookup, logr.shape[0], logr, offs, lut.h0, lut.inv_dh, lut.table, out)
     return out[0] if offsets is None else out

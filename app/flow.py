@@ -33,6 +33,7 @@ from .profile_model import (
     trilinear_at,
 )
 from .rig import Rig
+from .threads import run_rows
 
 #: early frames on which the blur model is refitted while its pool of bands fills
 BLUR_EARLY_REFITS = (1, 2, 4, 8)
@@ -127,12 +128,12 @@ BLUR_POOL_FRAMES = 8
 BLUR_REL_ERROR = 0.1
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
     static_factor, static_margin, blur_known, sweeps, moving_at, pitch, interval_ratio, banded,
-    sens, why,
+    sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
@@ -143,11 +144,12 @@ def _sweeps(
     off by ``BLUR_REL_ERROR`` (signed: both patterns share one blur model);
     ``why``: a :mod:`.causes` code for cells without sweeps, else ``DEPTH``.
     Cells whose sweep is hidden in the line width (below ``lo_factor * line +
-    lo_margin``) or whose bands fill the interval get NaN.
+    lo_margin``) or whose bands fill the interval get NaN.  Grid rows ``i0 .. i1``
+    only (the kernels of this module run bands of rows on a thread per core).
     """
-    gh, gw = interval_ratio.shape
+    gw = interval_ratio.shape[1]
     nu = u_of.shape[0]
-    for i in nb.prange(gh):
+    for i in range(i0, i1):
         for j in range(gw):
             interval_ratio[i, j] = np.nan
             banded[i, j] = 0.0
@@ -238,11 +240,14 @@ def _sweeps(
 N_STACK = 8
 
 
-@nb.njit(cache=True, parallel=True)
-def _pack(sweeps, banded, interval_ratio, stack):
-    """Fill the :data:`N_STACK` channels of ``stack`` (0 where the sweeps are invalid)."""
-    gh, gw = stack.shape[:2]
-    for i in nb.prange(gh):
+@nb.njit(cache=True, nogil=True)
+def _pack(sweeps, banded, interval_ratio, stack, i0, i1):
+    """Fill the :data:`N_STACK` channels of ``stack`` (0 where the sweeps are invalid).
+
+    Grid rows ``i0 .. i1`` only.
+    """
+    gw = stack.shape[1]
+    for i in range(i0, i1):
         for j in range(gw):
             stack[i, j, 3] = banded[i, j]
             a = sweeps[0, i, j]
@@ -261,10 +266,10 @@ def _pack(sweeps, banded, interval_ratio, stack):
                     stack[i, j, c] = 0.0
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def _decide(
     sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, share, sens, grids,
-    cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why,
+    cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, i0, i1,
 ):  # fmt: skip
     """Moving test on the averaged sweeps, then the log ratio, the flows (projector px)
     and the log ratio's expected error.
@@ -279,10 +284,11 @@ def _decide(
     The error of the log ratio has a random part, ``lr_var``: the local variance
     of the sweeps over the number of independent bands averaged (cells along a
     row between two bands share them), and a systematic part, ``lr_sys``: a blur
-    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).
+    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).  Grid rows
+    ``i0 .. i1`` only.
     """
-    gh, gw = log_ratio.shape
-    for i in nb.prange(gh):
+    gw = log_ratio.shape[1]
+    for i in range(i0, i1):
         for j in range(gw):
             log_ratio[i, j] = np.nan
             flows[0, i, j] = np.nan
@@ -407,8 +413,10 @@ class FlowModel:
         interval_ratio = np.empty((gh, gw), np.float32)
         banded = np.empty((gh, gw), np.float32)
         why = np.empty((gh, gw), np.uint8)
-        _sweeps(
-            grids, self.kinds, self.steps, self.widths, self.line_px, self.blur, self.single,
+        # bands of grid rows on a thread per core (the kernels release the GIL)
+        run_rows(
+            _sweeps, gh, grids, self.kinds, self.steps, self.widths, self.line_px, self.blur,
+            self.single,
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
@@ -421,7 +429,7 @@ class FlowModel:
         # Both patterns, their common mask and their second moments in one blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
         stack = np.empty((gh, gw, N_STACK), np.float32)
-        _pack(sweeps, banded, interval_ratio, stack)
+        run_rows(_pack, gh, sweeps, banded, interval_ratio, stack)
         blurred = _gauss(stack, sigma) if sigma > 0 else stack
         log_ratio = np.empty((gh, gw), np.float32)
         flows = np.empty((2, gh, gw), np.float32)
@@ -430,9 +438,11 @@ class FlowModel:
         # grid cells under the averaging kernel, times the stride: over the interval
         # (camera px) it is the number of independent bands averaged
         cells = 4.0 * math.pi * sigma * sigma * self.stride if sigma > 0 else self.stride
-        _decide(sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
-                params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio,
-                flows, lr_var, lr_sys, why)  # fmt: skip
+        run_rows(
+            _decide, gh, sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
+            params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio, flows,
+            lr_var, lr_sys, why,
+        )  # fmt: skip
         self.frames += 1
         return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why)
 

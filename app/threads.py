@@ -1,0 +1,78 @@
+"""One thread pool shared by the per-frame kernels of the pipeline.
+
+The per-frame numba kernels are serial over a range of rows and release the GIL;
+:func:`run_rows` runs bands of rows on a thread per core.  numba's
+``parallel=True`` would compile each kernel several times slower (seconds on a
+cold cache, on the path to a first depth picture) for the same speed.
+
+The pool is created on first use and shared by every pipeline of the process
+(never one per call); it is not part of any pipeline's state, so pickled or
+forked pipelines do not carry it: a forked child starts its own.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+_lock = threading.Lock()
+_pool: ThreadPoolExecutor | None = None
+_local = threading.local()
+
+
+def _mark_worker() -> None:
+    _local.worker = True
+
+
+def _forget_pool() -> None:
+    # the parent's threads do not exist in a forked child: start a new pool there
+    global _pool
+    _pool = None
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
+def threads() -> int:
+    """Number of threads :func:`run_rows` uses: one per core (``os.cpu_count()``)."""
+    return max(1, os.cpu_count() or 1)
+
+
+def shared_pool() -> ThreadPoolExecutor:
+    """The process's kernel thread pool, created on first use."""
+    global _pool
+    with _lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(threads(), "lightflow-rows", initializer=_mark_worker)
+        return _pool
+
+
+def run_rows(kernel, n: int, *args) -> None:
+    """Run ``kernel(*args, r0, r1)`` over rows ``0 .. n`` in one band per thread.
+
+    The calling thread runs the last band itself.  Bands of rows are
+    independent (each row writes only its own outputs), so the result is the
+    same as one call over all rows, bit for bit.
+
+    Parameters
+    ----------
+    kernel : callable
+        A jitted kernel that releases the GIL (``nogil=True``) and takes the
+        first and one-past-last row as its last two arguments.
+    n : int
+        Number of rows.
+    *args
+        The kernel's other arguments.
+    """
+    t = min(threads(), n)
+    if t <= 1 or getattr(_local, "worker", False):
+        # one band, or called from a pool thread (waiting on the pool there could deadlock)
+        kernel(*args, 0, n)
+        return
+    edges = [n * b // t for b in range(t + 1)]
+    pool = shared_pool()
+    futures = [pool.submit(kernel, *args, edges[b], edges[b + 1]) for b in range(t - 1)]
+    kernel(*args, edges[t - 1], edges[t])
+    for f in futures:
+        f.result()
