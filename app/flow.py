@@ -186,6 +186,9 @@ def _sweeps(
                 # camera blur is isotropic: along a row it widens a slanted edge
                 sigma = math.sqrt(blur[p, 0] * (1.0 + slant * slant) + blur[p, 1] * scale * scale)
                 r = grids[p, 2, i, j]
+                if line > (inv_m.shape[1] - 1) * w_step:
+                    why[i, j] = cz.MODEL_RANGE  # a line wider than the profile tables
+                    break
                 short = not (m >= m_max or m > line + 4.0 * sigma + 2.0)
                 L = np.nan
                 spread = 0.0  # the sweep's change for a blur off by +-BLUR_REL_ERROR

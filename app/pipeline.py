@@ -403,14 +403,14 @@ class DepthPipeline:
             return []
         with np.errstate(invalid="ignore"):
             widths = grids[:, 0][:, why == cz.MODEL_RANGE]
-        longest = float(np.nanmax(widths)) if np.isfinite(widths).any() else 0.0
+        typical = float(np.nanmedian(widths)) if np.isfinite(widths).any() else 0.0
         share = 100.0 * counts[cz.MODEL_RANGE] / lit
-        if longest > L_AXIS[-1]:
+        if typical > L_AXIS[-1]:
             return [f"{share:.0f} % of the lit pixels are out of the model's range: bands "
                     f"longer than {L_AXIS[-1]:.0f} px: lower the exposure"]  # fmt: skip
         return [f"{share:.0f} % of the lit pixels are out of the model's range: projected "
-                f"lines wider than the profile tables: use thinner lines or move the "
-                f"projector back"]  # fmt: skip
+                f"lines wider than the profile tables (16 camera px): use thinner lines "
+                f"(the patterns' width_px)"]  # fmt: skip
 
 
 def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.ndarray) -> BandSet:

@@ -293,3 +293,24 @@ def test_every_grid_pixel_has_one_cause(rig2):
     # static 35 %, irregular 10 %, overlap 7 %
     assert wall_causes[causes.DEPTH] <= 0.02 * wall_causes.sum()
     assert wall_causes[[causes.STATIC, causes.FAINT]].sum() > 0.6 * wall_causes.sum()
+
+
+def test_lines_wider_than_the_model_get_a_warning_and_a_cause():
+    """Projected lines far wider than the profile tables: counted, and the frame warns why."""
+    from lightflow.app import causes
+    from lightflow.app.rig import rig_from_dict
+
+    d = load_rig(RIGS / "two-projector.json").to_dict()
+    for proj in d["projectors"]:
+        for pat in proj["patterns"]:
+            # 40 projector px lines at a 100 px pitch: over 20 camera px wide at half size
+            pat["pitch_px"], pat["width_px"] = 100.0, 40.0
+    rig = rig_from_dict(d, "thick lines").scaled(0.5)
+    ((_, result),) = run(rig, "board", frames=1)
+    counts = result.cause_counts
+    lit = counts.sum() - counts[causes.NO_LINES]
+    print(f"\nthick lines: {causes.describe_counts(counts)}; warnings {result.warnings}")
+    assert counts[causes.MODEL_RANGE] > 0.5 * lit
+    assert len(result.warnings) == 1
+    assert "out of the model's range" in result.warnings[0]
+    assert "lines wider than the profile tables" in result.warnings[0]
