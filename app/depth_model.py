@@ -32,7 +32,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .geometry import camera_rays
-from .patterns import _exp2_step
+from .patterns import exp2_step
 from .rig import Rig
 from .threads import run_rows
 
@@ -67,7 +67,7 @@ def pattern_params(rig: Rig) -> np.ndarray:
     for pi, proj in enumerate(rig.projectors):
         for pat in proj.patterns:
             code = _KIND_CODE[pat.kind]
-            step = pat.pitch_px if code == 0 else _exp2_step(pat)
+            step = pat.pitch_px if code == 0 else exp2_step(pat)
             rows.append([pi, code, step, proj.width])
     return np.array(rows, dtype=np.float64)
 

@@ -62,8 +62,12 @@ def pattern_image(projector: ProjectorModel) -> np.ndarray:
     return img
 
 
-def _exp2_step(pattern: Pattern) -> float:
-    # symmetric difference (u_{k+1} - u_{k-1}) / 2 of an exp2 series, per unit of (u + W)
+def exp2_step(pattern: Pattern) -> float:
+    """Local pitch of an exp2 pattern per unit of ``u + W`` (projector px).
+
+    The symmetric difference ``(u_{k+1} - u_{k-1}) / 2`` of the exp2 series of
+    line positions, divided by ``u + W``: constant along the pattern.
+    """
     return (2 ** (1 / pattern.lines) - 2 ** (-1 / pattern.lines)) / 2
 
 
@@ -77,8 +81,8 @@ def local_pitch(pattern: Pattern, width: int, u):
     if pattern.kind == "uniform":
         return np.full_like(u, pattern.pitch_px)
     if pattern.kind == "exp2":
-        return (u + width) * _exp2_step(pattern)
-    return (2 * width - u) * _exp2_step(pattern)
+        return (u + width) * exp2_step(pattern)
+    return (2 * width - u) * exp2_step(pattern)
 
 
 def line_index(pattern: Pattern, width: int, u):

@@ -36,7 +36,6 @@ failed, ``arv_gv_device_is_controller`` is false) and every write is refused.
 
 from __future__ import annotations
 
-import collections
 import math
 import sys
 import threading
@@ -49,7 +48,7 @@ import cv2
 import numpy as np
 
 from lightflow.app.errors import DeviceLostError, DriverError
-from lightflow.drivers.base import Camera, Frame
+from lightflow.drivers.base import Camera, Frame, FrameHandoff
 from lightflow.drivers.pixfmt import packed_row_bytes, packing, significant_bits, unpack
 
 MIN_BUFFERS = 8
@@ -306,11 +305,7 @@ class AravisCamera(Camera):
         self.max_pending_mib = float(max_pending_mib)
         #: buffers in the pool of the current (or last) stream
         self.pool_size = 0
-        self._pending: collections.deque = collections.deque()
-        self._pending_bytes = 0
-        self._pending_cond = threading.Condition()
-        self._acq_done = False
-        self._acq_error: BaseException | None = None
+        self._handoff = FrameHandoff(self.max_pending_mib * 2**20)
         self._acq_thread: threading.Thread | None = None
         self._dropped_in_driver = 0
         self._discarded_at_stop = 0
@@ -626,8 +621,7 @@ class AravisCamera(Camera):
     def stop(self) -> None:
         """Make a running :meth:`frames` end within about 0.1 s (thread-safe)."""
         self._stop.set()
-        with self._pending_cond:
-            self._pending_cond.notify_all()
+        self._handoff.wake()
 
     def frames(self) -> Iterator[Frame]:
         """Stream frames until :meth:`stop` or :meth:`close`.
@@ -657,10 +651,7 @@ class AravisCamera(Camera):
             if self._acq_thread is not None:
                 self._acq_thread.join()  # it leaves within one pop timeout
                 self._acq_thread = None
-            with self._pending_cond:  # copied out after stop(), or never asked for
-                self._discarded_at_stop += len(self._pending)
-                self._pending.clear()
-                self._pending_bytes = 0
+            self._handoff.discard()  # copied out after stop(), or never asked for
             self._end_stream()
             self._streaming_thread = None
             self._idle.set()
@@ -679,13 +670,7 @@ class AravisCamera(Camera):
         self.pool_size = self._pool_size(payload)
         for _ in range(self.pool_size):
             stream.push_buffer(Aravis.Buffer.new_allocate(payload))
-        with self._pending_cond:
-            self._pending.clear()
-            self._pending_bytes = 0
-            self._acq_done = False
-            self._acq_error = None
-        self._dropped_in_driver = 0
-        self._discarded_at_stop = 0
+        self._handoff = FrameHandoff(self.max_pending_mib * 2**20)
         self._stream = stream
         self._call("start acquisition", self._cam.start_acquisition)
 
@@ -709,10 +694,10 @@ class AravisCamera(Camera):
         No local reference to the stream: a DeviceLostError traceback keeps
         this frame alive, and close() must be what frees the stream.
         """
+        error = None
         try:
             success = _aravis().BufferStatus.SUCCESS
             timeouts_for_lost = max(1, math.ceil(self.lost_after_s / POP_TIMEOUT_S))
-            cap = self.max_pending_mib * 2**20
             idle = 0
             while not self._stop.is_set():
                 if self._control_lost.is_set():
@@ -746,43 +731,21 @@ class AravisCamera(Camera):
                 finally:
                     self._stream.push_buffer(buffer)
                     buffer = None
-                with self._pending_cond:
-                    self._pending.append(item)
-                    self._pending_bytes += len(item[1])
-                    while self._pending_bytes > cap and len(self._pending) > 1:
-                        old = self._pending.popleft()
-                        self._pending_bytes -= len(old[1])
-                        self._dropped_in_driver += 1
-                    self._pending_cond.notify_all()
+                self._handoff.put(item)
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer in _deliver
-            self._acq_error = exc
+            error = exc
         finally:
-            with self._pending_cond:
-                self._acq_done = True
-                self._pending_cond.notify_all()
+            self._handoff.finish(error)
 
     def _deliver(self) -> Iterator[Frame]:
         """Convert and yield the copied-out frames, on the consumer's thread."""
         index = None
         last_id = None
         while True:
-            with self._pending_cond:
-                while not self._pending and not self._acq_done and not self._stop.is_set():
-                    self._pending_cond.wait()
-                if self._stop.is_set():
-                    # stop() ends the stream now; what was still waiting is counted
-                    self._discarded_at_stop += len(self._pending)
-                    self._pending.clear()
-                    self._pending_bytes = 0
-                    return
-                if self._pending:
-                    frame_id, data, width, height, padding, stamp_ns = self._pending.popleft()
-                    self._pending_bytes -= len(data)
-                elif self._acq_error is not None:
-                    error, self._acq_error = self._acq_error, None
-                    raise error
-                else:
-                    return  # stopped
+            item = self._handoff.get(self._stop)
+            if item is None:
+                return  # stopped, or the stream ended
+            frame_id, data, width, height, padding, stamp_ns = item
             index = frame_id if index is None else index + _id_step(last_id, frame_id)
             last_id = frame_id
             image = convert_image(data, self.pixel_format, width, height, padding)
@@ -826,8 +789,8 @@ class AravisCamera(Camera):
         stream = self._stream
         out: dict[str, float] = {"delivered": float(self._delivered),
                                  "bad_buffers": float(self._bad_buffers),
-                                 "dropped_in_driver": float(self._dropped_in_driver),
-                                 "discarded_at_stop": float(self._discarded_at_stop),
+                                 "dropped_in_driver": float(self._handoff.dropped),
+                                 "discarded_at_stop": float(self._handoff.discarded),
                                  "buffers": float(self.pool_size)}
         if stream is None:
             return out

@@ -11,6 +11,8 @@ pooled buffers copy out before yielding, as harvesters does).
 from __future__ import annotations
 
 import abc
+import collections
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -152,3 +154,80 @@ class PatternOutput(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class FrameHandoff:
+    """What a camera's acquisition thread hands its consumer: copied-out frames, capped in bytes.
+
+    The acquisition thread :meth:`put`\\ s items (tuples whose element 1 is the
+    frame's bytes) and ends with :meth:`finish`; past ``max_bytes`` the oldest
+    item is dropped and counted (``dropped``).  The consumer :meth:`get`\\ s the
+    next item: ``None`` when the stream ended or ``stop`` is set (what was still
+    waiting is then counted in ``discarded``), and the acquisition thread's
+    error is raised there, on the consumer's thread.
+
+    Parameters
+    ----------
+    max_bytes : float
+        Memory cap of the waiting frames.
+    """
+
+    def __init__(self, max_bytes: float):
+        self.max_bytes = max_bytes
+        self._items: collections.deque = collections.deque()
+        self._bytes = 0
+        self._cond = threading.Condition()
+        self._done = False
+        self._error: BaseException | None = None
+        self.dropped = 0
+        self.discarded = 0
+
+    def put(self, item: tuple) -> None:
+        """Add a frame (acquisition thread); drop the oldest past the cap."""
+        with self._cond:
+            self._items.append(item)
+            self._bytes += len(item[1])
+            while self._bytes > self.max_bytes and len(self._items) > 1:
+                self._bytes -= len(self._items.popleft()[1])
+                self.dropped += 1
+            self._cond.notify_all()
+
+    def finish(self, error: BaseException | None = None) -> None:
+        """The stream ended (acquisition thread), with ``error`` for the consumer if any."""
+        with self._cond:
+            if error is not None:
+                self._error = error
+            self._done = True
+            self._cond.notify_all()
+
+    def wake(self) -> None:
+        """Wake a waiting :meth:`get` (after setting its ``stop`` event)."""
+        with self._cond:
+            self._cond.notify_all()
+
+    def get(self, stop: threading.Event) -> tuple | None:
+        """The next frame, waiting for it; ``None`` at the end or once ``stop`` is set."""
+        with self._cond:
+            while not self._items and not self._done and not stop.is_set():
+                self._cond.wait()
+            if stop.is_set():
+                self._discard()  # stop() ends the stream now; what waited is counted
+                return None
+            if self._items:
+                item = self._items.popleft()
+                self._bytes -= len(item[1])
+                return item
+            if self._error is not None:
+                error, self._error = self._error, None
+                raise error
+            return None
+
+    def discard(self) -> None:
+        """Drop what is still waiting, counted in ``discarded`` (the stream is over)."""
+        with self._cond:
+            self._discard()
+
+    def _discard(self) -> None:
+        self.discarded += len(self._items)
+        self._items.clear()
+        self._bytes = 0

@@ -22,7 +22,6 @@ kernel's sequence numbers (``missing_frames``), error-flagged buffers
 
 from __future__ import annotations
 
-import collections
 import errno
 import glob
 import math
@@ -36,7 +35,7 @@ import numpy as np
 
 from lightflow.app.errors import DeviceLostError, DriverError
 from lightflow.drivers import v4l2_ioctl as v4l2
-from lightflow.drivers.base import Camera, Frame
+from lightflow.drivers.base import Camera, Frame, FrameHandoff
 
 #: Supported pixel formats, preferred first: RGB3 needs no conversion, YUYV is
 #: uncompressed (MJPG's block artefacts blur the lines the depth comes from).
@@ -55,8 +54,8 @@ WAIT_S = 0.1
 _GONE = {errno.ENODEV, errno.ENXIO, errno.EIO, errno.ESHUTDOWN}
 
 #: the counters of :meth:`V4L2Camera.stats`
-_COUNTS = ("delivered", "failures", "missing_frames", "dropped_in_driver", "discarded_at_stop",
-           "bad_buffers")
+#: (``dropped_in_driver`` and ``discarded_at_stop`` are counted by the frame hand-off)
+_COUNTS = ("delivered", "failures", "missing_frames", "bad_buffers")
 
 PERMISSION_HINT = (
     "add your user to the 'video' group (sudo usermod -aG video $USER, then log in again) "
@@ -203,11 +202,7 @@ class V4L2Camera(Camera):
         self._idle = threading.Event()
         self._idle.set()
         self._streaming_thread: int | None = None
-        self._pending: collections.deque = collections.deque()
-        self._pending_bytes = 0
-        self._pending_cond = threading.Condition()
-        self._acq_done = False
-        self._acq_error: BaseException | None = None
+        self._handoff = FrameHandoff(self.max_pending_mib * 2**20)
         self._acq_thread: threading.Thread | None = None
         self._exposure_s = float("nan")
         self._counts = dict.fromkeys(_COUNTS, 0)
@@ -412,8 +407,7 @@ class V4L2Camera(Camera):
         (``discarded_at_stop``); the acquisition thread leaves within ``WAIT_S``.
         """
         self._stop.set()
-        with self._pending_cond:
-            self._pending_cond.notify_all()
+        self._handoff.wake()
 
     def _frame_rate(self) -> float:
         """The device's frame rate from G_PARM, or DEFAULT_FPS if it does not say."""
@@ -436,11 +430,7 @@ class V4L2Camera(Camera):
 
     def _start_stream(self) -> None:
         dev = self._dev
-        with self._pending_cond:
-            self._pending.clear()
-            self._pending_bytes = 0
-            self._acq_done = False
-            self._acq_error = None
+        self._handoff = FrameHandoff(self.max_pending_mib * 2**20)
         try:
             count = dev.reqbufs(self._pool_request())
             if count < 2:
@@ -498,19 +488,16 @@ class V4L2Camera(Camera):
             if self._acq_thread is not None:
                 self._acq_thread.join()  # it leaves within WAIT_S
                 self._acq_thread = None
-            with self._pending_cond:  # copied out after stop(), or never asked for
-                self._counts["discarded_at_stop"] += len(self._pending)
-                self._pending.clear()
-                self._pending_bytes = 0
+            self._handoff.discard()  # copied out after stop(), or never asked for
             self._end_stream()
             self._streaming_thread = None
             self._idle.set()
 
     def _acquire(self) -> None:
         """The acquisition thread: dequeue, copy out, queue again; nothing else."""
+        error = None
         try:
             dev = self._dev
-            cap = self.max_pending_mib * 2**20
             last_seq = None
             while not self._stop.is_set():
                 if not dev.wait_readable(WAIT_S):
@@ -530,45 +517,23 @@ class V4L2Camera(Camera):
                     item = (buf.sequence, bytes(self._maps[buf.index][: buf.bytesused]), stamp)
                 finally:
                     dev.qbuf(buf.index)
-                with self._pending_cond:
-                    self._pending.append(item)
-                    self._pending_bytes += len(item[1])
-                    while self._pending_bytes > cap and len(self._pending) > 1:
-                        old = self._pending.popleft()
-                        self._pending_bytes -= len(old[1])
-                        self._counts["dropped_in_driver"] += 1
-                    self._pending_cond.notify_all()
+                self._handoff.put(item)
         except OSError as exc:
-            self._acq_error = self._fail("dequeue", exc)
+            error = self._fail("dequeue", exc)
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer in _deliver
-            self._acq_error = exc
+            error = exc
         finally:
-            with self._pending_cond:
-                self._acq_done = True
-                self._pending_cond.notify_all()
+            self._handoff.finish(error)
 
     def _deliver(self) -> Iterator[Frame]:
         """Convert and yield the copied-out frames, on the consumer's thread."""
         width, height = self.size
         stride = self._pix.bytesperline
         while True:
-            with self._pending_cond:
-                while not self._pending and not self._acq_done and not self._stop.is_set():
-                    self._pending_cond.wait()
-                if self._stop.is_set():
-                    # stop() ends the stream now; what was still waiting is counted
-                    self._counts["discarded_at_stop"] += len(self._pending)
-                    self._pending.clear()
-                    self._pending_bytes = 0
-                    return
-                if self._pending:
-                    sequence, data, stamp = self._pending.popleft()
-                    self._pending_bytes -= len(data)
-                elif self._acq_error is not None:
-                    error, self._acq_error = self._acq_error, None
-                    raise error
-                else:
-                    return
+            item = self._handoff.get(self._stop)
+            if item is None:
+                return  # stopped, or the stream ended
+            sequence, data, stamp = item
             try:
                 image = convert_frame(data, self.pixel_format, width, height, stride)
             except DriverError:
@@ -588,5 +553,7 @@ class V4L2Camera(Camera):
         decoded).  Kept after streaming ends.
         """
         out = {k: float(v) for k, v in self._counts.items()}
+        out["dropped_in_driver"] = float(self._handoff.dropped)
+        out["discarded_at_stop"] = float(self._handoff.discarded)
         out["buffers"] = float(self.pool_size)
         return out
