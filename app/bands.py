@@ -112,7 +112,7 @@ def _at_right(x, j, level):
 
 
 @nb.njit(cache=True)
-def _sliding_mid(x, win, out):
+def sliding_mid(x, win, out):
     """``out[0]``: (max + min) / 2, ``out[1]``: min, over a centred window of about ``win``.
 
     Only a segmentation level is needed, so it is computed on blocks of
@@ -235,7 +235,7 @@ def _gap_level(x, g0, g1):
 
 
 @nb.njit(cache=True)
-def _bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
+def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
     n = x.shape[0]
     max_b = out.shape[0]
@@ -532,8 +532,8 @@ def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, grou
             _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
             for p in range(n_p):
                 if q == 0:
-                    _sliding_mid(x[p], wins[p], thr[p])
-                counts[p, i] = _bands_in_row(
+                    sliding_mid(x[p], wins[p], thr[p])
+                counts[p, i] = bands_in_row(
                     x[p], thr[p], params[0] * scale, params[2], params[3], params[1], bands[p, i]
                 )
 
@@ -686,10 +686,10 @@ def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
         for j in range(w):
             ts[j] = img[y, j, target]
             ss[j] = img[y, j, source]
-        _sliding_mid(ts, win_t, thr)
-        nt = _bands_in_row(ts, thr, 0.0, 0.3, 1.0, 0.25, bt)
-        _sliding_mid(ss, win_s, thr)
-        ns = _bands_in_row(ss, thr, 0.0, 0.3, 1.0, 0.25, bs)
+        sliding_mid(ts, win_t, thr)
+        nt = bands_in_row(ts, thr, 0.0, 0.3, 1.0, 0.25, bt)
+        sliding_mid(ss, win_s, thr)
+        ns = bands_in_row(ss, thr, 0.0, 0.3, 1.0, 0.25, bs)
         for k in range(ns):
             if bs[k, F_VALID] <= 0 or n_out >= out.shape[0]:
                 continue

@@ -30,8 +30,8 @@ import threading
 import numba as nb
 import numpy as np
 
-from . import bands as _bands_module
-from .bands import N_FIELDS, _bands_in_row, _sliding_mid
+from . import bands as bands_module
+from .bands import N_FIELDS, bands_in_row, sliding_mid
 
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 _INV_SQRT2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -107,9 +107,9 @@ def _simulate_detector(L, w, sigma, phase, out2):
                 v += pixel_value(d, L, w, sigma)
         x[j] = 5.0 + 100.0 * v
     thr = np.empty((2, n))
-    _sliding_mid(x, int(2.2 * B) | 1, thr)
+    sliding_mid(x, int(2.2 * B) | 1, thr)
     out = np.empty((8, N_FIELDS))
-    ns = _bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, out)
+    ns = bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, out)
     out2[0] = np.nan
     out2[1] = np.nan
     for k in range(ns):
@@ -361,7 +361,7 @@ def tables_path():
     from .depth_model import lut_cache_dir  # the same cache folder as the LUTs
 
     digest = hashlib.sha256(
-        inspect.getsource(_bands_module).encode()
+        inspect.getsource(bands_module).encode()
         + inspect.getsource(sys.modules[__name__]).encode()
     ).hexdigest()[:12]
     return lut_cache_dir() / f"profile-tables-{digest}.npz"
