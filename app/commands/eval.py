@@ -20,6 +20,11 @@ order, and compare the depth with the truth:
   plane RMSE  planar scenes: RMSE of the estimate's 3D points from a robustly
               fitted plane (the paper's metric, mm)
   off-object  share of the depth pixels that are not on a moving object
+  within 1σ   share of the depths whose error is within one (two) predicted
+  (2σ)        standard deviations (OUT/<frame>_std.npy): about 68 % (95 %)
+              when the prediction is right
+The matrix also lists, per case, the largest causes of "no depth" on the
+moving object (static, irregular, cut, uncertain, ...).
 
 With several recordings (e.g. one scene at several --exposure values), also
 draws the median error and plane RMSE against exposure as a PNG, like the
@@ -95,11 +100,13 @@ def _pct(v: float) -> str:
 def format_table(metrics) -> list[str]:
     """The metrics of several recordings as aligned text lines."""
     head = ("recording", "scene", "exposure ms", "frames", "coverage %", "median mm",
-            "signed mm", "p90 mm", "plane RMSE mm", "off-object %")  # fmt: skip
+            "signed mm", "p90 mm", "plane RMSE mm", "off-object %", "within 1σ %",
+            "within 2σ %")  # fmt: skip
     rows = [
         (m.path, m.scene, f"{m.exposure_s * 1e3:g}", str(m.frames), _pct(m.coverage),
          _mm(m.median_error_m), _mm(m.median_signed_m), _mm(m.p90_error_m),
-         _mm(m.plane_rmse_m), _pct(m.off_object))
+         _mm(m.plane_rmse_m), _pct(m.off_object), _pct(m.within_1sigma),
+         _pct(m.within_2sigma))
         for m in metrics
     ]  # fmt: skip
     widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
