@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import threading
 
@@ -77,12 +78,24 @@ def run(args: argparse.Namespace) -> int:
         allow_size_mismatch=args.allow_size_mismatch,
     )
     stop = threading.Event()
-    with out:
-        for name, screen in out.placements:
-            print(f"projector {name} -> {screen.describe()}")
-        print("showing; press Esc in a window or Ctrl-C here to stop", flush=True)
-        try:
-            out.run(stop)
-        except KeyboardInterrupt:
-            print("stopped", file=sys.stderr)
+    interrupted = threading.Event()
+
+    def on_ctrl_c(signum, frame) -> None:
+        # an Event, not KeyboardInterrupt: the pyglet loop wakes on `stop` (its watcher
+        # thread), and a Ctrl-C arriving outside the loop still ends it cleanly
+        interrupted.set()
+        stop.set()
+
+    previous = signal.signal(signal.SIGINT, on_ctrl_c)
+    try:
+        with out:
+            for name, screen in out.placements:
+                print(f"projector {name} -> {screen.describe()}")
+            print("showing; press Esc in a window or Ctrl-C here to stop", flush=True)
+            if not interrupted.is_set():
+                out.run(stop)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if interrupted.is_set():
+        print("stopped", file=sys.stderr)
     return 0
