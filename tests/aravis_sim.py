@@ -62,6 +62,21 @@ def private_netns_problem() -> str | None:
     return None
 
 
+
+def start_child(cmd: list[str]) -> tuple[subprocess.Popen, str]:
+    """Start ``cmd`` and read the one line it writes when ready (or failing).
+
+    A watchdog kills a child that says nothing within ``READY_TIMEOUT_S``
+    instead of polling it.
+    """
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    watchdog = threading.Timer(READY_TIMEOUT_S, proc.kill)
+    watchdog.start()
+    try:
+        return proc, proc.stdout.readline().strip()
+    finally:
+        watchdog.cancel()
+
 class Simulator:
     """A GigE Vision simulator in a child process, on the loopback interface.
 
@@ -74,15 +89,7 @@ class Simulator:
 
     def start(self) -> None:
         cmd = [sys.executable, __file__, "--interface", "lo", "--serial", self.serial]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-        # The child writes one line once its camera is serving (or fails and
-        # exits); a watchdog bounds the wait instead of polling.
-        watchdog = threading.Timer(READY_TIMEOUT_S, self.proc.kill)
-        watchdog.start()
-        try:
-            line = self.proc.stdout.readline().strip()
-        finally:
-            watchdog.cancel()
+        self.proc, line = start_child(cmd)
         if line != "ready":
             self.stop()
             raise RuntimeError(f"GigE Vision simulator did not start (said {line!r})")
@@ -128,13 +135,7 @@ class Holder:
 
     def start(self) -> None:
         cmd = [sys.executable, __file__, "--hold", self.device, "--source", HOLDER_ADDRESS]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-        watchdog = threading.Timer(READY_TIMEOUT_S, self.proc.kill)
-        watchdog.start()
-        try:
-            line = self.proc.stdout.readline().strip()
-        finally:
-            watchdog.cancel()
+        self.proc, line = start_child(cmd)
         if line != "holding":
             self.kill()
             raise RuntimeError(f"the second client did not take control (said {line!r})")
