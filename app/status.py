@@ -195,6 +195,14 @@ class StatusLine:
             self.stream.flush()
 
 
+def is_terminal(stream) -> bool:
+    """Whether ``stream`` is a terminal (progress rewrites one line in place there)."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
 class Progress:
     """``progress(done, total)`` callback printing a percentage (e.g. while a LUT is built).
 
@@ -204,10 +212,7 @@ class Progress:
     def __init__(self, label: str, stream: TextIO | None = None):
         self.label = label
         self.stream = stream if stream is not None else sys.stderr
-        try:
-            self.tty = self.stream.isatty()
-        except (AttributeError, ValueError):
-            self.tty = False
+        self.tty = is_terminal(self.stream)
         self._shown = -1
         self._started = False
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.status import is_terminal
 
 HELP = "render a moving scene, reconstruct its depth and show it (no hardware needed)"
 
@@ -147,10 +148,7 @@ class CompileProgress:
     def __init__(self, label: str, stream=None):
         self.label = label
         self.stream = stream if stream is not None else sys.stderr
-        try:
-            self.tty = self.stream.isatty()
-        except (AttributeError, ValueError):
-            self.tty = False
+        self.tty = is_terminal(self.stream)
         self.kernels = 0
         self.current = ""
         self._depth = 0
