@@ -191,7 +191,7 @@ def _sweeps(
                     break
                 short = not (m >= m_max or m > line + 4.0 * sigma + 2.0)
                 L = np.nan
-                spread = 0.0  # the sweep's change for a blur off by +-BLUR_REL_ERROR
+                spread = 0.0  # the sweep's change for a blur larger by BLUR_REL_ERROR
                 if m >= m_max:
                     # far beyond line width and blur: the width at half height is the sweep
                     L = m

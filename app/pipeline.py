@@ -17,7 +17,6 @@ from . import causes as cz
 from .depth_model import DepthLUT, DepthRange, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
 from .flow import FlowModel, FlowParams, masked_smooth, smooth_log_ratio
-from .profile_model import L_AXIS
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 
@@ -27,8 +26,8 @@ MAX_BANDS_PER_ROW = 160
 #: scaled by this (chosen on the tuning rigs of the evaluation matrix)
 NOISE_SCALE = 2.0
 #: error of the log flow ratio that no local spread shows (profile model, pattern
-#: geometry), one sigma; index: single projector or not (tuning rigs)
-LOG_RATIO_FLOOR = {False: 0.01, True: 0.01}
+#: geometry), one sigma (tuning rigs; the same for one and two projectors)
+LOG_RATIO_FLOOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -321,9 +320,8 @@ class DepthPipeline:
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
         # the final smoothing averages the random part further (by its kernel area)
         gain = min(1.0, (sigma_s / sigma_f) ** 2) if sigma_f > 0 else 1.0
-        floor = LOG_RATIO_FLOOR[self.flow_model.single]
         with np.errstate(invalid="ignore"):
-            lr_var = fm.lr_var * (NOISE_SCALE**2 * gain) + fm.lr_sys**2 + floor**2
+            lr_var = fm.lr_var * (NOISE_SCALE**2 * gain) + fm.lr_sys**2 + LOG_RATIO_FLOOR**2
             std = np.sqrt(lr_var) * dz_dh
             uncertain = std > cfg.max_depth_std * z_raw
         why[uncertain] = cz.UNCERTAIN
@@ -364,7 +362,7 @@ class DepthPipeline:
             causes_grid=causes,
             cause_counts=counts_by_cause,
             leak_known=bool(cfg.crosstalk != "auto" or self._leak_known.all()),
-            warnings=self._warnings(counts_by_cause, grids, why),
+            warnings=self._warnings(counts_by_cause),
         )
 
     def _depth_and_slope(self, log_ratio: np.ndarray):
@@ -389,25 +387,22 @@ class DepthPipeline:
         causes[no_lines] = cz.NO_LINES
         # dropped by the robust smoothing, or a ratio outside the working range
         left = causes == cz.DEPTH
-        causes[left & np.isfinite(raw) & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
+        causes[left & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
         causes[left & np.isfinite(log_ratio) & ~np.isfinite(depth_grid)] = cz.DEPTH_RANGE
-        causes[left & ~np.isfinite(raw) & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
         # holes filled by the smoothing have a depth whatever their own cause
         causes[np.isfinite(depth_grid)] = cz.DEPTH
         return causes
 
-    def _warnings(self, counts, grids, why) -> list[str]:
-        """Frame-level warnings: most pixels with lines out of the model's range."""
+    def _warnings(self, counts) -> list[str]:
+        """Frame-level warnings: most pixels with lines out of the model's range.
+
+        Bands of any length are measured (beyond the tables their width is the
+        sweep), so what falls out of the range are lines wider than the tables.
+        """
         lit = int(counts.sum() - counts[cz.NO_LINES])
         if lit == 0 or counts[cz.MODEL_RANGE] < 0.5 * lit:
             return []
-        with np.errstate(invalid="ignore"):
-            widths = grids[:, 0][:, why == cz.MODEL_RANGE]
-        typical = float(np.nanmedian(widths)) if np.isfinite(widths).any() else 0.0
         share = 100.0 * counts[cz.MODEL_RANGE] / lit
-        if typical > L_AXIS[-1]:
-            return [f"{share:.0f} % of the lit pixels are out of the model's range: bands "
-                    f"longer than {L_AXIS[-1]:.0f} px: lower the exposure"]  # fmt: skip
         return [f"{share:.0f} % of the lit pixels are out of the model's range: projected "
                 f"lines wider than the profile tables (16 camera px): use thinner lines "
                 f"(the patterns' width_px)"]  # fmt: skip
