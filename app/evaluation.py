@@ -474,7 +474,8 @@ def evaluate_recording(
                 flows = st.true_flows(rec.rig, "", entry.t, rec.exposure_s, renderer)
             stage_frames.append(st.stage_errors(
                 result.flows_grid, result.log_ratio_grid, result.depth, truth, flows,
-                result.stride, rec.rig.single_projector, result.causes_grid))  # fmt: skip
+                result.stride, rec.rig.single_projector, result.causes_grid,
+                result.intervals_grid))  # fmt: skip
         if progress:
             progress("frames", i + 1, len(rec.frames))
     return RecordingMetrics(

@@ -344,6 +344,7 @@ class DepthPipeline:
             cause_counts=counts_by_cause,
             leak_known=bool(cfg.crosstalk != "auto" or self._leak_known.all()),
             warnings=self._warnings(counts_by_cause),
+            intervals_grid=grids[:, 1],
         )
 
     def _causes(self, bands, counts, grids, why, raw, log_ratio, depth_grid) -> np.ndarray:

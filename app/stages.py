@@ -171,7 +171,7 @@ def true_flows(rig: Rig, scene: str, t0: float, exposure_s: float, renderer=None
 
 
 def stage_errors(flows_grid, log_ratio_grid, depth, truth, flows: TrueFlows, stride: int,
-                 single: bool, causes_grid=None) -> dict:  # fmt: skip
+                 single: bool, causes_grid=None, intervals_grid=None) -> dict:  # fmt: skip
     """Per-pixel errors of each stage on the moving pixels that got a depth.
 
     Parameters
@@ -191,6 +191,9 @@ def stage_errors(flows_grid, log_ratio_grid, depth, truth, flows: TrueFlows, str
     causes_grid : numpy.ndarray, optional
         The pipeline's cause per grid pixel: the moving pixels without depth are
         listed with their cause and their true sweep over the line width.
+    intervals_grid : numpy.ndarray, optional
+        ``(2, h, w)`` measured line intervals: each flow's error is split into
+        that of the interval and that of the band length.
 
     Returns
     -------
@@ -227,6 +230,8 @@ def stage_errors(flows_grid, log_ratio_grid, depth, truth, flows: TrueFlows, str
             "missed_cause": causes_grid[missed].astype(np.int64),
             "missed_sweep_over_line": np.min(ts[:, missed] / tl[:, missed], axis=0),
             "flow_rel": measured[:, on] / tf[:, on] - 1.0,
+            "interval_rel": (np.asarray(intervals_grid, np.float64)[:, on] / tb[:, on] - 1.0
+                             if intervals_grid is not None else np.full((2, on.sum()), np.nan)),
             "log_ratio": log_ratio_grid[on].astype(np.float64) - true_lr[on],
             "depth": z[on] - zt[on],
             "sweep": ts[:, on],
@@ -259,6 +264,10 @@ def summarise(per_frame: list[dict]) -> dict:
     for p in range(2):
         out[f"flow{p}_signed_pct"] = 100 * med(pooled["flow_rel"][p])
         out[f"flow{p}_abs_pct"] = 100 * med(np.abs(pooled["flow_rel"][p]))
+        # flow = (L / B) P: (1 + flow error) = (1 + length error) / (1 + interval error)
+        b = pooled["interval_rel"][p]
+        out[f"interval{p}_signed_pct"] = 100 * med(b)
+        out[f"length{p}_signed_pct"] = 100 * med((1 + pooled["flow_rel"][p]) * (1 + b) - 1)
         out[f"sweep{p}_px"] = med(pooled["sweep"][p])
         out[f"interval{p}_px"] = med(pooled["interval"][p])
     return out
@@ -268,12 +277,15 @@ def format_stages(name: str, s: dict) -> str:
     """One line of :func:`summarise`'s figures."""
     if not s["n"]:
         return f"{name}: no moving pixel with depth to attribute{_missed(s)}"
-    return (f"{name}: {s['n']} px; flow error (signed / |.|) pattern 0 "
-            f"{s['flow0_signed_pct']:+.1f} / {s['flow0_abs_pct']:.1f} % (true sweep "
-            f"{s['sweep0_px']:.1f} px of interval {s['interval0_px']:.1f}), pattern 1 "
-            f"{s['flow1_signed_pct']:+.1f} / {s['flow1_abs_pct']:.1f} % (sweep "
-            f"{s['sweep1_px']:.1f} of {s['interval1_px']:.1f}); log ratio "
-            f"{s['log_ratio']:+.3f}; depth {s['depth_mm']:+.1f} mm{_missed(s)}")  # fmt: skip
+    pats = "; ".join(
+        f"pattern {p} flow {s[f'flow{p}_signed_pct']:+.1f} % (|.| {s[f'flow{p}_abs_pct']:.1f}), "
+        f"sweep {s[f'length{p}_signed_pct']:+.1f} %, "
+        f"interval {s[f'interval{p}_signed_pct']:+.1f} % "
+        f"(true sweep {s[f'sweep{p}_px']:.1f} px of interval {s[f'interval{p}_px']:.1f})"
+        for p in range(2)
+    )
+    return (f"{name}: {s['n']} px; {pats}; log ratio {s['log_ratio']:+.3f}; depth "
+            f"{s['depth_mm']:+.1f} mm{_missed(s)}")  # fmt: skip
 
 
 def _missed(s: dict) -> str:
