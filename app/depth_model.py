@@ -31,7 +31,7 @@ import numba as nb
 import numpy as np
 
 from .errors import ConfigError
-from .geometry import camera_rays, lens_coefficients, lens_distort_derivative
+from .geometry import LENS_COEFFICIENTS, camera_rays, lens_coefficients, lens_distort_derivative
 from .patterns import pattern_code, pitch_at
 from .rig import Rig
 from .threads import run_rows
@@ -74,13 +74,13 @@ def pattern_params(rig: Rig) -> np.ndarray:
 
 
 def _projector_params(rig: Rig) -> np.ndarray:
-    """Per projector: R (9), t (3), fx, skew, cx, fy, cy, lens coefficients (12) = 29 numbers."""
-    out = np.zeros((len(rig.projectors), 29))
+    """Per projector: R (9), t (3), fx, skew, cx, fy, cy, then :func:`lens_coefficients`."""
+    out = np.zeros((len(rig.projectors), 17 + LENS_COEFFICIENTS))
     for i, p in enumerate(rig.projectors):
         out[i, :9] = p.R.ravel()
         out[i, 9:12] = p.t
         out[i, 12:17] = [p.K[0, 0], p.K[0, 1], p.K[0, 2], p.K[1, 1], p.K[1, 2]]
-        out[i, 17:29] = lens_coefficients(p.dist)
+        out[i, 17:] = lens_coefficients(p.dist)
     return out
 
 
@@ -98,7 +98,7 @@ def _proj_u_du(pp, x, y, z):
     yn = py / pz
     dxn = (X * pz - Z * px) / (pz * pz)
     dyn = (Y * pz - Z * py) / (pz * pz)
-    xd, yd, dxd, dyd = lens_distort_derivative(pp[17:29], xn, yn, dxn, dyn)
+    xd, yd, dxd, dyd = lens_distort_derivative(pp[17:], xn, yn, dxn, dyn)
     u = pp[12] * xd + pp[13] * yd + pp[14]
     du = pp[12] * dxd + pp[13] * dyd
     return u, du, pz

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
+from numba.extending import register_jitable
 
 from .rig import CHANNEL_INDEX, Pattern, ProjectorModel
 
@@ -86,7 +86,7 @@ def pattern_code(pattern: Pattern) -> tuple[int, float]:
     return code, float(pattern.pitch_px if code == 0 else exp2_step(pattern))
 
 
-@nb.njit(cache=True, inline="always")
+@register_jitable
 def pitch_at(code, step, width, u):
     """Local line interval (projector px) at column ``u``: the one pitch formula.
 
@@ -97,7 +97,7 @@ def pitch_at(code, step, width, u):
     width : float
         Projector width W in pixels.
     u : float or numpy.ndarray
-        Projector column (arrays through ``pitch_at.py_func``).
+        Projector column (a scalar in numba kernels, which compile this in).
 
     Returns
     -------
@@ -121,7 +121,7 @@ def local_pitch(pattern: Pattern, width: int, u):
     """
     u = np.asarray(u, dtype=np.float64)
     code, step = pattern_code(pattern)
-    return np.broadcast_to(pitch_at.py_func(code, step, width, u), u.shape).copy()
+    return np.broadcast_to(pitch_at(code, step, width, u), u.shape).copy()
 
 
 def line_index(pattern: Pattern, width: int, u):

@@ -74,18 +74,21 @@ def test_projector_projection_agrees_with_opencv_in_the_camera_frame():
 
 
 DIST12 = np.array([-0.2, 0.05, 1e-3, -2e-3, 0.01, 0.1, -0.02, 0.005, 1e-3, -5e-4, 2e-3, 1e-4])
+#: with a tilted sensor (tau_x, tau_y in radians)
+DIST14 = np.concatenate([DIST12, [0.02, -0.015]])
 
 
-def test_rational_and_thin_prism_terms_agree_with_opencv():
+@pytest.mark.parametrize("dist", [DIST12, DIST14], ids=["12", "14-tilted"])
+def test_rational_thin_prism_and_tilt_terms_agree_with_opencv(dist):
     # OpenCV's model has no skew: projectPoints ignores K[0, 1]
     K = np.array([[900.0, 0.0, 640.0], [0.0, 910.0, 360.0], [0.0, 0.0, 1.0]])
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-0.6, 0.6, (2000, 2)), np.ones(2000)])
-    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, DIST12)
-    assert np.abs(project_points(K, DIST12, pts) - ref.reshape(-1, 2)).max() < 1e-6
+    ref, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, dist)
+    assert np.abs(project_points(K, dist, pts) - ref.reshape(-1, 2)).max() < 1e-6
 
 
-@pytest.mark.parametrize("dist", [np.zeros(5), DIST12])
+@pytest.mark.parametrize("dist", [np.zeros(5), DIST12, DIST14], ids=["none", "12", "14-tilted"])
 def test_undistortion_round_trip_with_skew(dist):
     # the rig format allows a skew s = K[0, 1]; projection and undistortion must both apply it
     K = np.array([[900.0, 2.5, 640.0], [0.0, 910.0, 360.0], [0.0, 0.0, 1.0]])
@@ -95,8 +98,9 @@ def test_undistortion_round_trip_with_skew(dist):
     assert np.abs(back - pix).max() < 1e-6
 
 
-def test_lens_derivative_matches_finite_differences():
-    d = lens_coefficients(DIST12)
+@pytest.mark.parametrize("dist", [DIST12, DIST14], ids=["12", "14-tilted"])
+def test_lens_derivative_matches_finite_differences(dist):
+    d = lens_coefficients(dist)
     rng = np.random.default_rng(2)
     for x, y, dx, dy in rng.uniform(-0.5, 0.5, (50, 4)):
         xd, yd, dxd, dyd = lens_distort_derivative(d, x, y, dx, dy)
@@ -108,7 +112,7 @@ def test_lens_derivative_matches_finite_differences():
         assert dyd == pytest.approx((yp - ym) / (2 * e), abs=1e-8)
 
 
-@pytest.mark.parametrize("strong", [False, True])
+@pytest.mark.parametrize("strong", [None, DIST12, DIST14], ids=["rig", "12", "14-tilted"])
 def test_simulator_projection_and_core_lens_agree_over_the_panel(strong):
     # the simulator tabulates cv2.projectPoints; the core evaluates its own model
     from lightflow.drivers.render import lens_table, pack_projector, project_to_projector
@@ -116,7 +120,7 @@ def test_simulator_projection_and_core_lens_agree_over_the_panel(strong):
     rig = resolve_rig("two-projector-distorted")
     rng = np.random.default_rng(4)
     for p in rig.projectors:
-        dist = DIST12 if strong else p.dist
+        dist = p.dist if strong is None else strong
         header, _ = lens_table(p.K, dist, p.width, p.height)
         assert header[4] > 0  # a table, not the pinhole shortcut
         # points whose projector pixels cover the whole panel
