@@ -36,7 +36,8 @@ from .patterns import pattern_code, pitch_at
 from .rig import Rig
 from .threads import run_rows
 
-LUT_VERSION = 4
+#: 5: the tilted-sensor lens terms are applied (tables of tilted rigs changed)
+LUT_VERSION = 5
 #: inverse-depth samples per pixel in the LUT (96 bytes/pixel with the two scalars: 184 MB
 #: at 1600x1200 with stride 1)
 LUT_SAMPLES = 22
