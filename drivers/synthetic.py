@@ -33,9 +33,10 @@ from .render import (
 from .scenes import Scene, get_scene, newspaper_texture
 
 # The simulator is a reference for the reconstruction, so it shares none of its
-# geometry code: camera rays come from OpenCV's own undistortPoints, patterns
-# are rasterised here from the format's definition, and projector parameters
-# are packed here from the rig's numbers.  An error on either side then shows.
+# geometry code: camera rays come from OpenCV's own undistortPoints, projector
+# pixels from a table of OpenCV's projectPoints (render.pack_projector, from the
+# rig's numbers), and patterns are rasterised here from the format's definition.
+# An error on either side then shows.
 
 
 _RAYS: dict[bytes, np.ndarray] = {}
