@@ -16,6 +16,7 @@ from . import causes as cz
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
 from .flow import FlowModel, FlowParams, smooth_log_ratio
+from .intervals import IntervalModel
 from .results import BandSet, FrameResult, upsample_grid
 from .rig import CHANNEL_INDEX, Rig
 
@@ -49,6 +50,10 @@ class PipelineConfig:
     max_depth_std : float
         Pixels whose predicted depth standard deviation exceeds this share of
         their depth get none (cause ``uncertain``).
+    predict_intervals : bool
+        Two projectors: where the sparse pattern's measured line interval
+        disagrees with the one its dense partner and the rig predict (curved
+        surfaces), use the prediction (:mod:`lightflow.app.intervals`).
     """
 
     stride: int = 4
@@ -58,6 +63,7 @@ class PipelineConfig:
     crosstalk: str | float = "auto"
     crosstalk_every: int = 30
     max_depth_std: float = 0.03
+    predict_intervals: bool = True
 
     def __post_init__(self):
         if self.stride not in (1, 2, 4):
@@ -111,6 +117,9 @@ class DepthPipeline:
                 f"see `lightflow rig check`"
             )
         self.flow_model = FlowModel(rig)
+        self.intervals = None
+        if cfg.predict_intervals and not rig.single_projector:
+            self.intervals = IntervalModel(rig, cfg.stride, cfg.depth_range)
         self.flow_model.stride = cfg.stride
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
         cam = rig.camera
@@ -217,7 +226,8 @@ class DepthPipeline:
         return time.perf_counter() - t0
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
-    _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "_buffers", "_full_size"})
+    _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
+                           "_full_size"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:
@@ -299,6 +309,14 @@ class DepthPipeline:
         raw, why = fm.log_ratio, fm.why
         # predicted error of each pixel's depth, and no depth where it is too large
         z_raw, dz_dh = depth_and_slope(self.lut, raw)
+        if self.intervals is not None:
+            # a flow is L / B: with the predicted interval it changes by B / B_predicted
+            fix = self.intervals.correct(grids[:, 1], z_raw)
+            if fix.any():
+                raw = raw + fix[0] - fix[1]
+                for p in range(2):
+                    fm.flows[p] *= np.exp(fix[p])
+                z_raw, dz_dh = depth_and_slope(self.lut, raw)
         why[np.isfinite(raw) & ~np.isfinite(z_raw)] = cz.DEPTH_RANGE
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
@@ -344,6 +362,7 @@ class DepthPipeline:
             cause_counts=counts_by_cause,
             leak_known=bool(cfg.crosstalk != "auto" or self._leak_known.all()),
             warnings=self._warnings(counts_by_cause),
+            intervals_grid=grids[:, 1],
         )
 
     def _causes(self, bands, counts, grids, why, raw, log_ratio, depth_grid) -> np.ndarray:

@@ -73,6 +73,10 @@ class FrameResult:
         (until then it is taken as 0).
     warnings : list of str
         Frame-level warnings (for example most pixels out of the model's range).
+    intervals_grid : numpy.ndarray or None
+        ``(2, h, w)``: per pattern, the measured line interval (camera px) on the
+        grid, NaN without bands; with ``flows_grid`` it splits a flow's error into
+        its band length and its interval (``lightflow eval --stages``).
     """
 
     frame: Frame
@@ -88,6 +92,7 @@ class FrameResult:
     cause_counts: np.ndarray | None = None
     leak_known: bool = True
     warnings: list[str] = field(default_factory=list)
+    intervals_grid: np.ndarray | None = None
 
     @cached_property
     def depth_std(self) -> np.ndarray | None:
