@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.core.errors import ConfigError, DriverError
 from lightflow.app.status import is_terminal
 
 HELP = "render a moving scene, reconstruct its depth and show it (no hardware needed)"
@@ -243,7 +243,7 @@ def render_ahead(camera, helper, done: threading.Event, failed: list, since) -> 
 
 def renderer_cached() -> bool:
     """Whether numba's on-disk cache holds the renderer's main kernel."""
-    from lightflow.drivers import render
+    from lightflow.drivers.sim import render
 
     pattern = "render.render_exposure_fast-*.nbi"
     root = os.environ.get("NUMBA_CACHE_DIR")
@@ -255,9 +255,9 @@ def renderer_cached() -> bool:
 #: the helper process: profile tables, then the renderer's kernels (argv: rig, scene)
 HELPER = (
     "import sys\n"
-    "from lightflow.app.profile_model import tables\n"
-    "from lightflow.app.rig import resolve_rig\n"
-    "from lightflow.drivers.synthetic import warm_up_renderer\n"
+    "from lightflow.app.core.profile_model import tables\n"
+    "from lightflow.app.core.rig import resolve_rig\n"
+    "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
     "tables()\n"
     "warm_up_renderer(resolve_rig(sys.argv[1]), sys.argv[2])\n"
 )
@@ -265,21 +265,20 @@ HELPER = (
 
 def get_scene_checked(name: str):
     """The built-in scene ``name`` (ConfigError naming the choices otherwise)."""
-    from lightflow.drivers.scenes import get_scene
+    from lightflow.drivers.sim.scenes import get_scene
 
     return get_scene(name)
 
 
 def run(args: argparse.Namespace) -> int:
-    from lightflow.app.depth_model import load_or_build_lut
-    from lightflow.app.pipeline import DepthPipeline
-    from lightflow.app.profile_model import prefetch_tables, tables_path
-    from lightflow.app.rig import resolve_rig
+    from lightflow.app.core.depth_model import load_or_build_lut
+    from lightflow.app.core.pipeline import DepthPipeline
+    from lightflow.app.core.profile_model import prefetch_tables, tables_path
+    from lightflow.app.core.rig import resolve_rig
+    from lightflow.app.options import close_all, pipeline_config
     from lightflow.app.runner import Runner
     from lightflow.app.status import Progress, StatusLine
-    from lightflow.drivers.synthetic import SyntheticCamera
-
-    from .replay import close_all, pipeline_config
+    from lightflow.drivers.sim.synthetic import SyntheticCamera
 
     start = time.perf_counter()
 
