@@ -89,9 +89,11 @@ def test_projection_agrees_with_opencv(rig_name):
     import cv2
 
     from lightflow.drivers.sim.render import project_to_projector
+    from lightflow.drivers.sim.rigspec import read_rig
     from lightflow.drivers.sim.synthetic import camera_rays_cv, pack_projectors
 
     rig = resolve_rig(rig_name)
+    spec = read_rig(rig.to_dict())
     cam = rig.camera
     # camera rays from OpenCV's undistortion reproject onto their pixels
     rays = camera_rays_cv(cam.K, cam.dist, cam.width, cam.height)[::37, ::41].reshape(-1, 3)
@@ -102,7 +104,7 @@ def test_projection_agrees_with_opencv(rig_name):
     rng = np.random.default_rng(1)
     pts = rays * rng.uniform(0.5, 1.0, (len(rays), 1))
     for q, p in enumerate(rig.projectors):
-        ours = project_to_projector(pack_projectors(rig)[q], pts)
+        ours = project_to_projector(pack_projectors(spec)[q], pts)
         rvec, _ = cv2.Rodrigues(np.asarray(p.R, np.float64))
         ref, _ = cv2.projectPoints(pts, rvec, np.asarray(p.t, np.float64), p.K, p.dist)
         inside = (np.abs(ours[:, 0] - p.width / 2) < p.width) & (
@@ -156,3 +158,24 @@ def test_frames_rendered_ahead_are_the_same_frames():
         assert np.array_equal(a.image, b.image)  # same noise draws, in the same order
         assert np.array_equal(a.extras["truth"].depth, b.extras["truth"].depth, equal_nan=True)
     assert ahead.render_ahead(5) == 3  # a finite scene ends
+
+
+@pytest.mark.parametrize(
+    "rig_name", ["two-projector", "two-projector-distorted", "single-projector"]
+)
+def test_simulator_reads_the_rig_document_itself(rig_name):
+    """The simulator's own reading of a rig agrees with the core's on the example rigs."""
+    from lightflow.drivers.sim.rigspec import CHANNELS, read_rig
+
+    rig = resolve_rig(rig_name)
+    spec = read_rig(rig.to_dict())
+    assert (spec.camera.width, spec.camera.height) == (rig.camera.width, rig.camera.height)
+    np.testing.assert_array_equal(spec.camera.K, rig.camera.K)
+    assert len(spec.projectors) == len(rig.projectors)
+    for ours, core in zip(spec.projectors, rig.projectors, strict=True):
+        np.testing.assert_array_equal(ours.R, core.R)
+        np.testing.assert_allclose(ours.centre, core.centre_in_camera, atol=1e-12)
+    for ours, (proj, pat) in zip(spec.patterns, rig.patterns, strict=True):
+        assert spec.projectors[ours.projector].width == proj.width
+        assert ours.channel == CHANNELS[pat.channel] and ours.kind == pat.kind
+        assert ours.width_px == pat.width_px

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from lightflow.app.core.errors import ConfigError, DriverError
-from lightflow.app.core.rig import CHANNEL_INDEX, Pattern, Rig
+from lightflow.app.core.rig import Rig
 
 from ..base import Camera, Frame
 from .render import (
@@ -30,6 +30,7 @@ from .render import (
     render_truth,
     stratified_offsets,
 )
+from .rigspec import SimPattern, SimRig, read_rig
 from .scenes import Scene, get_scene, newspaper_texture
 
 # The simulator is a reference for the reconstruction, so it shares none of its
@@ -92,7 +93,7 @@ def run_row_bands(
             future.result()
 
 
-def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
+def pattern_footprints(pattern: SimPattern, width: int) -> np.ndarray:
     """``(n, 2)`` column intervals lit by a pattern, from the format's definition.
 
     Line k covers the projector columns x with ``|x - u_k| <= width_px / 2``; a
@@ -119,7 +120,7 @@ def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
     return np.stack([first - 0.5, last + 0.5], axis=1).astype(np.float64)
 
 
-def pack_projectors(rig: Rig) -> np.ndarray:
+def pack_projectors(rig: SimRig) -> np.ndarray:
     """Per projector a row of :func:`lightflow.drivers.sim.render.pack_projector` (zero-padded)."""
     rows = [pack_projector(p.R, p.t, p.K, p.dist, p.width, p.height) for p in rig.projectors]
     out = np.zeros((len(rows), max(len(r) for r in rows)))
@@ -244,27 +245,27 @@ class SceneRenderer:
         self.rig = rig
         self.scene = scene
         self.sensor = sensor
-        cam = rig.camera
+        # the simulator's own reading of the rig document, not the core's objects
+        self.spec = spec = read_rig(rig.to_dict())
+        cam = spec.camera
         rays = camera_rays_cv(cam.K, cam.dist, cam.width, cam.height)
         self.rays = np.array(rays)  # a writable copy: numba compiles for writable arrays
         # per-pixel change of the ray for sub-pixel samples
         self.ray_dx = np.ascontiguousarray(np.gradient(rays, axis=1))
         self.ray_dy = np.ascontiguousarray(np.gradient(rays, axis=0))
         self.texture = newspaper_texture()
-        self.projs = pack_projectors(rig)
-        self.proj_centre = np.array([p.centre_in_camera for p in rig.projectors])
-        self.proj_size = np.array([[p.width, p.height] for p in rig.projectors], dtype=np.float64)
-        pats = rig.patterns
-        foots = [pattern_footprints(pat, proj.width) for proj, pat in pats]
+        self.projs = pack_projectors(spec)
+        self.proj_centre = np.array([p.centre for p in spec.projectors])
+        self.proj_size = np.array([[p.width, p.height] for p in spec.projectors], dtype=np.float64)
+        pats = spec.patterns
+        foots = [pattern_footprints(pat, spec.projectors[pat.projector].width) for pat in pats]
         n_max = max(len(f) for f in foots)
         self.pat_foot = np.zeros((len(pats), n_max, 2))
         for m, f in enumerate(foots):
             self.pat_foot[m, : len(f)] = f
         self.pat_nfoot = np.array([len(f) for f in foots], dtype=np.int64)
-        self.pat_proj = np.array(
-            [rig.projectors.index(proj) for proj, _ in pats], dtype=np.int64
-        )
-        self.pat_channel = np.array([CHANNEL_INDEX[pat.channel] for _, pat in pats], np.int64)
+        self.pat_proj = np.array([pat.projector for pat in pats], dtype=np.int64)
+        self.pat_channel = np.array([pat.channel for pat in pats], np.int64)
         # each projector is set so that a white surface at the reference distance is WHITE_DN
         target = np.array([0.0, 0.0, REFERENCE_DISTANCE_M])
         self.proj_power = np.array(
@@ -291,14 +292,14 @@ class SceneRenderer:
             time and pixel area at every pixel) instead of the fast form, which
             integrates smooth pixels exactly and samples only the others.
         """
-        cam = self.rig.camera
+        cam = self.spec.camera
         out = np.zeros((cam.height, cam.width, 3))
         prims = self.scene.primitives(t0 + exposure_s / 2)
         # brightness scales with exposure relative to the scene's nominal exposure
         gain = exposure_s / self.scene.exposure_s
         s = self.sensor
         power = self.proj_power * gain
-        defocus = np.full(len(self.rig.projectors), s.projector_defocus_px)
+        defocus = np.full(len(self.spec.projectors), s.projector_defocus_px)
         crosstalk = np.array(s.crosstalk)
         ambient = np.full(3, s.ambient_dn * gain)
         shared = (
@@ -316,7 +317,7 @@ class SceneRenderer:
             self.last_mc_fraction = 1.0
         else:
             times = t0 + exposure_s * np.linspace(0.0, 1.0, KNOTS)
-            n_fields = 2 + 2 * len(self.rig.projectors)
+            n_fields = 2 + 2 * len(self.spec.projectors)
             mc = np.zeros(cam.height, dtype=np.int64)
 
             def band(lo: int, hi: int) -> None:
@@ -344,7 +345,7 @@ class SceneRenderer:
         return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
     def truth(self, t: float) -> GroundTruth:
-        cam = self.rig.camera
+        cam = self.spec.camera
         depth = np.empty((cam.height, cam.width))
         obj = np.empty((cam.height, cam.width), dtype=np.uint8)
         lit = np.empty((cam.height, cam.width), dtype=np.uint8)
