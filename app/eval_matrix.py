@@ -162,7 +162,7 @@ def renderer_version() -> str:
 
     sim = Path(__file__).resolve().parent.parent / "drivers" / "sim"
     digest = hashlib.sha256()
-    for name in ("render.py", "scenes.py", "synthetic.py"):
+    for name in ("render.py", "rigspec.py", "scenes.py", "synthetic.py"):
         path = sim / name
         if path.is_file():
             digest.update(path.read_bytes())
