@@ -9,11 +9,14 @@ board corners mapped into projector pixels (see :mod:`.corners`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from lightflow.app.core.errors import CalibrationError
 
 #: k1, k2, p1, p2 estimated; k3 fixed at 0 (a 6-10 pose session cannot pin it down)
 DEFAULT_FLAGS = cv2.CALIB_FIX_K3
@@ -54,6 +57,16 @@ class Extrinsics:
     per_view: np.ndarray  # (n, 2): camera, projector RMS of each view
 
 
+@contextlib.contextmanager
+def _library_errors(what: str) -> Iterator[None]:
+    """A failure inside OpenCV or SciPy becomes one CalibrationError line naming the step."""
+    try:
+        yield
+    except (cv2.error, ValueError, np.linalg.LinAlgError) as exc:
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise CalibrationError(f"{what} failed: {detail}") from None
+
+
 def _as_lists(object_points, image_points):
     obj = [np.ascontiguousarray(o, np.float32).reshape(-1, 1, 3) for o in object_points]
     img = [np.ascontiguousarray(p, np.float32).reshape(-1, 1, 2) for p in image_points]
@@ -80,9 +93,10 @@ def calibrate_intrinsics(
         OpenCV calibration flags.
     """
     obj, img = _as_lists(object_points, image_points)
-    rms, K, dist, rvecs, tvecs, _, _, per_view = cv2.calibrateCameraExtended(
-        obj, img, tuple(size), None, None, flags=flags, criteria=_CRITERIA
-    )
+    with _library_errors("intrinsic calibration (cv2.calibrateCameraExtended)"):
+        rms, K, dist, rvecs, tvecs, _, _, per_view = cv2.calibrateCameraExtended(
+            obj, img, tuple(size), None, None, flags=flags, criteria=_CRITERIA
+        )
     return Intrinsics(K, dist.ravel()[:5].copy(), float(rms), per_view.ravel().copy(),
                       list(rvecs), list(tvecs))
 
@@ -144,11 +158,12 @@ def stereo_extrinsics(
     """
     obj, cam = _as_lists(object_points, camera_points)
     _, prj = _as_lists(object_points, projector_points)
-    out = cv2.stereoCalibrateExtended(
-        obj, cam, prj, camera.K.copy(), camera.dist.copy(), projector.K.copy(),
-        projector.dist.copy(), tuple(camera_size), None, None,
-        flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
-    )
+    with _library_errors("camera-projector calibration (cv2.stereoCalibrateExtended)"):
+        out = cv2.stereoCalibrateExtended(
+            obj, cam, prj, camera.K.copy(), camera.dist.copy(), projector.K.copy(),
+            projector.dist.copy(), tuple(camera_size), None, None,
+            flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
+        )
     rms, R, T, per_view = out[0], out[5], out[6], out[-1]
     return Extrinsics(R, T.ravel(), float(rms), np.asarray(per_view).reshape(-1, 2))
 
@@ -302,11 +317,12 @@ def joint_refine(
             sparsity[row : row + k, off_pose + 6 * i : off_pose + 6 * i + 6] = 1
             row += k
 
-    fit = least_squares(
-        residuals, p0, jac_sparsity=sparsity, method="trf", loss="soft_l1",
-        f_scale=outlier_px, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
-        max_nfev=iterations * 20,
-    )
+    with _library_errors("joint refinement (scipy.optimize.least_squares)"):
+        fit = least_squares(
+            residuals, p0, jac_sparsity=sparsity, method="trf", loss="soft_l1",
+            f_scale=outlier_px, x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+            max_nfev=iterations * 20,
+        )
     p = fit.x
     r = residuals(p)
     cost = float(r @ r)

@@ -153,3 +153,15 @@ def test_cli_simulated_gamma_is_measured_by_calibrate(tmp_path, capsys):
         assert float(value) == pytest.approx(1.8, abs=0.05)
     assert "note: projector left is not linear" in text
     assert "warning: only 4 good poses" in text
+
+
+def test_a_solver_failure_is_one_calibration_error_line():
+    """OpenCV refusing the views becomes one CalibrationError naming the step."""
+    from lightflow.app.core.errors import CalibrationError
+    from lightflow.calibration.solve import calibrate_intrinsics
+
+    obj = [np.zeros((3, 3), np.float32)]  # too few points for a calibration
+    img = [np.zeros((3, 2), np.float32)]
+    with pytest.raises(CalibrationError, match="intrinsic calibration .* failed") as err:
+        calibrate_intrinsics(obj, img, (640, 480))
+    assert "\n" not in str(err.value)
