@@ -31,6 +31,10 @@ class Scene:
         Exposure at which the bands are about 10-15 px long (example rigs).
     planar : bool
         Whether the moving object is a plane (plane-fit RMSE applies).
+    period_s : float
+        Time after which the motion repeats.
+    objects : tuple of str
+        Names of the moving objects, for object ids 2, 3, ... (empty: not named).
     """
 
     name: str
@@ -38,6 +42,7 @@ class Scene:
     exposure_s: float
     planar: bool
     period_s: float
+    objects: tuple = ()
 
     def primitives(self, t: float) -> np.ndarray:
         """Primitive rows valid for times near ``t`` (motion inside is analytic)."""
@@ -137,6 +142,22 @@ def _ball_wall(t):
     return np.concatenate([np.stack([wall]), _thrown(t)])
 
 
+#: the demo's board: smaller than the boards above, so the wall shows beside it
+DEMO_BOARD_HALF = (0.12, 0.1)
+
+
+def _board_and_ball(t):
+    # what the demo teaches: two moving objects (a flat board moving in depth at the
+    # left, a ball thrown away from the camera at the right) in front of a static wall;
+    # the objects' blurred lines give depth, the wall's sharp lines are rejected
+    wall = _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.1)), n=(7, (0, 0, -1)))
+    z, vz = _triangle(t, 0.6, 0.9, BOARD_SPEED)
+    board = _rect(2, 0.85, 0, (-0.12, 0.0, z - vz * t), (0, 0, vz), (1, 0, 0), (0, 1, 0),
+                  *DEMO_BOARD_HALF)  # fmt: skip
+    ball = _throws(t, [(3, (0.08, -0.05, 0.68), (0.05, -0.4, 0.6), 0.08)])
+    return np.concatenate([np.stack([wall, board]), ball])
+
+
 def _two_balls(t):
     return _throws(t, [
         (2, (-0.12, -0.04, 0.7), (0.1, -0.4, 0.55), 0.085),
@@ -190,6 +211,9 @@ SCENES: dict[str, Scene] = {
               THROW_PERIOD),
         Scene("two-balls", "two balls thrown in opposite depth directions", 0.02, False,
               THROW_PERIOD),
+        Scene("board-and-ball", "a board moving in depth and a thrown ball, in front of a "
+              "static wall at 1.1 m (the demo)", 0.03, False, 10 * THROW_PERIOD,
+              ("board", "ball")),
     )
 }
 
@@ -206,6 +230,7 @@ _BUILDERS = {
     "fan": _fan,
     "ball-wall": _ball_wall,
     "two-balls": _two_balls,
+    "board-and-ball": _board_and_ball,
 }
 
 
