@@ -142,20 +142,23 @@ def _ball_wall(t):
     return np.concatenate([np.stack([wall]), _thrown(t)])
 
 
-#: the demo's board: smaller than the boards above, so the wall shows beside it
-DEMO_BOARD_HALF = (0.12, 0.1)
+def _demo_board(t, obj, x, half, phase):
+    # a board facing the camera, moving along the axis between 0.6 and 0.9 m
+    z, vz = _triangle(t + phase, 0.6, 0.9, BOARD_SPEED)
+    return _rect(obj, 0.85, 0, (x, 0.0, z - vz * t), (0, 0, vz), (1, 0, 0), (0, 1, 0), *half)
 
 
-def _board_and_ball(t):
-    # what the demo teaches: two moving objects (a flat board moving in depth at the
-    # left, a ball thrown away from the camera at the right) in front of a static wall;
-    # the objects' blurred lines give depth, the wall's sharp lines are rejected
+def _boards_wall(t):
+    # what the demo teaches: two objects moving in depth, one approaching while the
+    # other recedes, in front of a static wall; the boards' blurred lines give depth,
+    # the wall's sharp lines are rejected
     wall = _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.1)), n=(7, (0, 0, -1)))
-    z, vz = _triangle(t, 0.6, 0.9, BOARD_SPEED)
-    board = _rect(2, 0.85, 0, (-0.12, 0.0, z - vz * t), (0, 0, vz), (1, 0, 0), (0, 1, 0),
-                  *DEMO_BOARD_HALF)  # fmt: skip
-    ball = _throws(t, [(3, (0.08, -0.05, 0.68), (0.05, -0.4, 0.6), 0.08)])
-    return np.concatenate([np.stack([wall, board]), ball])
+    half_period = (0.9 - 0.6) / BOARD_SPEED
+    return np.stack([
+        wall,
+        _demo_board(t, 2, -0.12, (0.12, 0.1), 0.0),
+        _demo_board(t, 3, 0.13, (0.1, 0.1), half_period),
+    ])  # fmt: skip
 
 
 def _two_balls(t):
@@ -211,9 +214,9 @@ SCENES: dict[str, Scene] = {
               THROW_PERIOD),
         Scene("two-balls", "two balls thrown in opposite depth directions", 0.02, False,
               THROW_PERIOD),
-        Scene("board-and-ball", "a board moving in depth and a thrown ball, in front of a "
-              "static wall at 1.1 m (the demo)", 0.03, False, 10 * THROW_PERIOD,
-              ("board", "ball")),
+        Scene("boards-wall", "two boards moving in depth in opposite directions, 0.6-0.9 m, "
+              "in front of a static wall at 1.1 m (the demo)", 0.03, True, 1.0,
+              ("left board", "right board")),
     )
 }
 
@@ -230,7 +233,7 @@ _BUILDERS = {
     "fan": _fan,
     "ball-wall": _ball_wall,
     "two-balls": _two_balls,
-    "board-and-ball": _board_and_ball,
+    "boards-wall": _boards_wall,
 }
 
 

@@ -16,22 +16,22 @@ from lightflow.drivers.scenes import get_scene
 from lightflow.drivers.synthetic import GroundTruth, SceneRenderer
 
 
-def test_demo_scene_has_a_board_and_a_ball_moving_before_a_static_wall():
-    scene = get_scene("board-and-ball")
-    assert scene.objects == ("board", "ball")
+def test_demo_scene_has_two_boards_moving_apart_before_a_static_wall():
+    scene = get_scene("boards-wall")
+    assert scene.objects == ("left board", "right board") and scene.planar
     rig = resolve_rig("two-projector").scaled(0.1)
     renderer = SceneRenderer(rig, scene)
     a, b = renderer.truth(0.1), renderer.truth(0.2)
-    wall, board, ball = (a.object_id == k for k in (1, 2, 3))
-    assert 0.2 < wall.mean() and 0.05 < board.mean() < 0.5 and 0.005 < ball.mean() < 0.2
+    wall, left, right = (a.object_id == k for k in (1, 2, 3))
+    assert 0.2 < wall.mean() and 0.05 < left.mean() < 0.5 and 0.05 < right.mean() < 0.5
     assert np.allclose(a.depth[wall], 1.1, atol=1e-4)
     assert np.allclose(b.depth[b.object_id == 1], 1.1, atol=1e-4)
-    # the board moves along the axis at 0.6 m/s: 60 mm in 0.1 s, between 0.6 and 0.9 m
-    za, zb = np.median(a.depth[board]), np.median(b.depth[b.object_id == 2])
-    assert 0.6 <= za <= 0.9 and zb - za == pytest.approx(0.06, abs=0.005)
-    # the ball is at the right of the board, nearer than the wall
-    assert np.median(np.nonzero(ball)[1]) > np.median(np.nonzero(board)[1])
-    assert np.nanmax(a.depth[ball]) < 1.0
+    assert np.median(np.nonzero(left)[1]) < np.median(np.nonzero(right)[1])
+    # along the axis at 0.6 m/s, in opposite directions: 60 mm in 0.1 s, within 0.6-0.9 m
+    for obj, step in ((2, 0.06), (3, -0.06)):
+        za, zb = (float(np.median(t.depth[t.object_id == obj])) for t in (a, b))
+        assert 0.6 <= min(za, zb) and max(za, zb) <= 0.9
+        assert zb - za == pytest.approx(step, abs=0.005)
 
 
 def _result(depth, truth):

@@ -59,8 +59,8 @@ def register(subparsers) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--scene", default="board-and-ball",
-                   help="built-in scene (default board-and-ball)")
+    p.add_argument("--scene", default="boards-wall",
+                   help="built-in scene (default boards-wall)")
     p.add_argument("--rig", default="two-projector", metavar="NAME|PATH",
                    help="two-projector, single-projector or a rig file (default two-projector)")
     p.add_argument("--frames", type=int, default=36, metavar="N",
