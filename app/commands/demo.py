@@ -252,35 +252,45 @@ def cpu_seconds() -> float:
 
 
 class Helper:
-    """The helper process: the renderer's kernels, then the band profile tables.
+    """The helper process: the rig's depth table, the renderer's kernels, the band profile tables.
 
-    It builds the tables once this process says (:meth:`go`) that the band
-    detector's kernels are in numba's on-disk cache: the tables run the
-    detector itself, and compiling it twice, once in each process, would
-    cost about 10 s of CPU time on the way to the first depth picture.  Its
-    steps arrive as lines on its stdout (read by a thread: no polling).
+    It builds the profile tables once this process says (:meth:`go`) that
+    the band detector's kernels are in numba's on-disk cache: the tables run
+    the detector itself, and compiling it twice, once in each process, would
+    cost about 10 s of CPU time on the way to the first depth picture.  The
+    depth table and the renderer come first, while this process compiles the
+    detector.  Each is loaded when cached.  Its steps arrive as lines on its
+    stdout (read by a thread: no polling).
     """
 
-    #: argv: rig, scene, "wait" (for the go line on stdin) or "go"
+    #: argv: rig, scale, stride, near, far, scene, "wait" (for a line on stdin) or "go"
     SCRIPT = (
         "import sys\n"
+        "from lightflow.app.depth_model import DepthRange, load_or_build_lut\n"
         "from lightflow.app.rig import resolve_rig\n"
+        "rig, scale, stride, near, far, scene, wait = sys.argv[1:]\n"
+        "rig = resolve_rig(rig)\n"
+        "if float(scale) != 1:\n"
+        "    rig = rig.scaled(float(scale))\n"
+        "load_or_build_lut(rig, int(stride), DepthRange(float(near), float(far)))\n"
+        "print('lut', flush=True)\n"
         "from lightflow.drivers.synthetic import warm_up_renderer\n"
-        "warm_up_renderer(resolve_rig(sys.argv[1]), sys.argv[2])\n"
+        "warm_up_renderer(rig, scene)\n"
         "print('renderer', flush=True)\n"
         "from lightflow.app.profile_model import tables\n"
-        "if sys.argv[3] == 'wait':\n"
+        "if wait == 'wait':\n"
         "    sys.stdin.readline()\n"
         "tables()\n"
         "print('tables', flush=True)\n"
     )
 
-    def __init__(self, rig: str, scene: str, wait: bool, since):
+    def __init__(self, argv: list[str], since):
         self.since = since
+        self.lut = threading.Event()
         self.renderer = threading.Event()
         self.tables = threading.Event()
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", self.SCRIPT, rig, scene, "wait" if wait else "go"],
+            [sys.executable, "-c", self.SCRIPT, *argv],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
         )  # fmt: skip
         self._reader = threading.Thread(target=self._read, name="demo-helper", daemon=True)
@@ -289,7 +299,9 @@ class Helper:
     def _read(self) -> None:
         for line in self.proc.stdout:
             step = line.strip()
-            if step == "renderer":
+            if step == "lut":
+                self.lut.set()
+            elif step == "renderer":
                 print(f"\n      helper: renderer kernels ready after {self.since()}", flush=True)
                 self.renderer.set()
             elif step == "tables":
@@ -299,8 +311,8 @@ class Helper:
         self.proc.stdout.close()
         self.proc.wait()
         # wake whoever waits: a failed helper leaves its steps to this process
-        self.renderer.set()
-        self.tables.set()
+        for step in (self.lut, self.renderer, self.tables):
+            step.set()
 
     @property
     def failed(self) -> bool:
@@ -360,35 +372,57 @@ def in_numba_cache(module, *names: str) -> bool:
     return True
 
 
-def warm_up_bands(rig, config) -> None:
-    """Compile the band detector's kernels as the pipeline calls them, on a striped test image.
+class BandStageWarmUp:
+    """Compiles the band stage's kernels as the pipeline calls them, on a striped test image.
 
-    The helper process builds the profile tables with the same kernels
-    (numba's on-disk cache hands them over), so they are compiled first.
-    Argument types follow :class:`~lightflow.app.pipeline.DepthPipeline`: a
-    mismatch would only compile them once more.
+    :meth:`detect` compiles the band detector, which the helper process then
+    builds the profile tables with (numba's on-disk cache hands the kernels
+    over); :meth:`rasterise` compiles the slants and the rasterisation onto
+    the analysis grid meanwhile.  Argument types follow
+    :class:`~lightflow.app.pipeline.DepthPipeline`: a mismatch would only
+    compile a kernel once more.
     """
-    from lightflow.app import bands as bd
-    from lightflow.app.pipeline import MAX_BANDS_PER_ROW
 
-    cam = rig.camera
-    x = np.arange(cam.width)
-    image = np.full((cam.height, cam.width, 3), 20, np.uint8)
-    image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
-    image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
-    b = config.bands
-    params = np.array([b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px,
-                       b.min_gap_px, b.vertical_extra], dtype=np.float64)  # fmt: skip
-    s = config.stride
-    group = max(1, min(b.rows_per_cell, s))  # measured rows per grid cell, as the pipeline's
-    row_y = (np.arange(cam.height // s)[:, None] * s + (s - group) // 2
-             + np.arange(group)[None, :]).ravel().astype(np.int64)  # fmt: skip
-    weights = np.zeros((2, 3))
-    weights[0, 0] = weights[1, 2] = 1.0
-    bands = np.empty((2, len(row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
-    counts = np.empty((2, len(row_y)), np.int64)
-    bd.detect_bands(image, weights, row_y, np.array([61, 61]), 255.0, params, bands, counts,
-                    group)  # fmt: skip
+    def __init__(self, rig, config):
+        from lightflow.app import bands as bd
+        from lightflow.app.pipeline import MAX_BANDS_PER_ROW
+
+        cam = rig.camera
+        x = np.arange(cam.width)
+        self.image = np.full((cam.height, cam.width, 3), 20, np.uint8)
+        self.image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
+        self.image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
+        b = config.bands
+        self.params = np.array([b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px,
+                                b.min_gap_px, b.vertical_extra], dtype=np.float64)  # fmt: skip
+        self.stride = s = config.stride
+        self.group = max(1, min(b.rows_per_cell, s))  # measured rows per grid cell
+        self.row_y = (np.arange(cam.height // s)[:, None] * s + (s - self.group) // 2
+                      + np.arange(self.group)[None, :]).ravel().astype(np.int64)  # fmt: skip
+        self.cells = (cam.height // s, cam.width // s)
+        self.bands = np.empty((2, len(self.row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
+        self.counts = np.empty((2, len(self.row_y)), np.int64)
+
+    def detect(self) -> None:
+        """Compile (or load) the band detector's kernels."""
+        from lightflow.app import bands as bd
+
+        weights = np.zeros((2, 3))
+        weights[0, 0] = weights[1, 2] = 1.0
+        bd.detect_bands(self.image, weights, self.row_y, np.array([61, 61]), 255.0, self.params,
+                        self.bands, self.counts, self.group)  # fmt: skip
+
+    def rasterise(self) -> None:
+        """Compile (or load) the band slants and the rasterisation onto the grid."""
+        from lightflow.app import bands as bd
+
+        fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
+        gh, gw = self.cells
+        grids = np.empty((2, len(fields), gh, gw))
+        for p in range(2):
+            bd.band_slants(self.bands[p], self.counts[p], self.row_y)
+            bd.rasterise_cells(self.bands[p], self.counts[p], self.group, self.stride, gw, 0.5,
+                               fields, grids[p])  # fmt: skip
 
 
 def simulated_leak(rig) -> float:
@@ -458,18 +492,21 @@ def run(args: argparse.Namespace) -> int:
           f"({args.frames / args.fps:.1f} s of motion), exposure {scene.exposure_s * 1e3:g} ms, "
           f"colour leak {leak_text}", flush=True)  # fmt: skip
     # A first run on a machine builds tables and compiles kernels (numba, one core
-    # each), all cached.  This process compiles the band detector first; a helper
-    # process compiles the renderer meanwhile and then builds the band profile tables
-    # with the detector's cached kernels, while this process builds the depth table
-    # and compiles the rest of the pipeline (which needs the profile tables only
+    # each), all cached.  This process compiles the band detector first, while a
+    # helper process builds the depth table and compiles the renderer; the helper then
+    # builds the band profile tables with the detector's cached kernels while this
+    # process compiles the rest of the pipeline (which needs the profile tables only
     # half-way).  Frames are rendered ahead on whatever core is left idle.
     helper = None
     need_tables = not tables_path().exists()
     if need_tables or not in_numba_cache(render, "render_exposure_fast", "knot_states"):
-        print("[1/4] helper process: the renderer's kernels, then the band profile tables (what "
-              "the band detector reports for every sweep, line width and blur); once per "
-              "machine ...", flush=True)  # fmt: skip
-        helper = Helper(str(args.rig), scene.name, need_tables, since)
+        print("[1/4] helper process: the depth table of this rig, the renderer's kernels, then "
+              "the band profile tables (what the band detector reports for every sweep, line "
+              "width and blur); once per machine ...", flush=True)  # fmt: skip
+        dr = config.depth_range
+        helper = Helper([str(args.rig), repr(args.scale), str(config.stride), repr(dr.near),
+                         repr(dr.far), scene.name, "wait" if need_tables else "go"],
+                        since)  # fmt: skip
     else:
         print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
     camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
@@ -480,28 +517,33 @@ def run(args: argparse.Namespace) -> int:
     try:
         ahead.start()
         cached = in_numba_cache(bd, "bands_in_row", "sliding_mid")
-        print("[2/4] band detector: "
-              + ("its kernels are in the cache" if cached else "its kernels, on a test image"
-                 + (" (the helper builds the profile tables with them)" if need_tables else "")
-                 + " ..."), flush=True)  # fmt: skip
+        print("[2/4] band detector and rasterisation: "
+              + ("their kernels are in the cache" if cached else "their kernels, on a test image"
+                 + (" (the helper builds the profile tables with the detector's)" if need_tables
+                    else "") + " ..."), flush=True)  # fmt: skip
+        band_stage = BandStageWarmUp(rig, config)
         with CompileProgress("      band detector") as compiling:
             try:
-                warm_up_bands(rig, config)
+                band_stage.detect()
             finally:
                 if helper is not None:
                     helper.go()
+            band_stage.rasterise()
         print(f"      {compiling.summary()}; ready after {since()}", flush=True)
-        print("[3/4] depth table of this rig (once per rig; meanwhile the helper builds the "
-              "profile tables) ..." if need_tables else "[3/4] depth table of this rig (once "
-              "per rig) ...", flush=True)  # fmt: skip
+        print("[3/4] depth table of this rig (once per rig"
+              + ("; built by the helper" if helper is not None else "") + ") ...",
+              flush=True)  # fmt: skip
+        if helper is not None:
+            helper.lut.wait()  # a failed helper leaves it to this process
         lut = load_or_build_lut(rig, config.stride, config.depth_range,
                                 Progress("      building the depth table"))  # fmt: skip
         print(f"      ready after {since()}", flush=True)
         print("[4/4] depth pipeline: its other kernels, on a test image"
-              + (" (they wait for the profile tables half-way)" if need_tables else "") + " ...",
+              + (" (after the helper's profile tables)" if need_tables else "") + " ...",
               flush=True)  # fmt: skip
-        # after go: the helper holds the tables' build lock by now (had this process
-        # taken it first, it would build them itself, as correctly, and the helper load them)
+        if helper is not None:
+            # one process builds the tables; a failed helper leaves them to this one
+            helper.tables.wait()
         prefetch_tables()
         with CompileProgress("      pipeline") as compiling:
             try:
