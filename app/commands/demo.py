@@ -252,41 +252,40 @@ def cpu_seconds() -> float:
 
 
 class Helper:
-    """The helper process: the rig's depth table, the renderer's kernels, the band profile tables.
+    """The helper process: half of the band detector's kernels, the profile tables, the renderer.
 
-    It builds the profile tables once this process says (:meth:`go`) that
-    the band detector's kernels are in numba's on-disk cache: the tables run
-    the detector itself, and compiling it twice, once in each process, would
-    cost about 10 s of CPU time on the way to the first depth picture.  The
-    depth table and the renderer come first, while this process compiles the
-    detector.  Each is loaded when cached.  Its steps arrive as lines on its
-    stdout (read by a thread: no polling).
+    The band profile tables run the band detector's row kernels
+    (``sliding_mid``, ``bands_in_row``), which the pipeline needs first too:
+    the helper compiles one while this process compiles the other, numba's
+    on-disk cache hands each to the other process, and the helper builds the
+    tables once this process says (:meth:`go`) that its kernel is cached;
+    compiling them twice would cost about 7 s of CPU time on the way to the
+    first depth picture.  Then it compiles the renderer.  Whatever is cached is
+    loaded.  Its steps arrive as lines on its stdout (read by a thread: no polling).
     """
 
-    #: argv: rig, scale, stride, near, far, scene, "wait" (for a line on stdin) or "go"
+    #: argv: rig, scene, "wait" (for a line on stdin before the tables) or "go"
     SCRIPT = (
         "import sys\n"
-        "from lightflow.app.depth_model import DepthRange, load_or_build_lut\n"
-        "from lightflow.app.rig import resolve_rig\n"
-        "rig, scale, stride, near, far, scene, wait = sys.argv[1:]\n"
-        "rig = resolve_rig(rig)\n"
-        "if float(scale) != 1:\n"
-        "    rig = rig.scaled(float(scale))\n"
-        "load_or_build_lut(rig, int(stride), DepthRange(float(near), float(far)))\n"
-        "print('lut', flush=True)\n"
-        "from lightflow.drivers.synthetic import warm_up_renderer\n"
-        "warm_up_renderer(rig, scene)\n"
-        "print('renderer', flush=True)\n"
+        "import numpy as np\n"
+        "from lightflow.app import bands\n"
+        "rig, scene, wait = sys.argv[1:]\n"
+        "bands.sliding_mid(np.zeros(64), 5, np.zeros((2, 64)))\n"
+        "print('sliding_mid', flush=True)\n"
         "from lightflow.app.profile_model import tables\n"
         "if wait == 'wait':\n"
         "    sys.stdin.readline()\n"
         "tables()\n"
         "print('tables', flush=True)\n"
+        "from lightflow.app.rig import resolve_rig\n"
+        "from lightflow.drivers.synthetic import warm_up_renderer\n"
+        "warm_up_renderer(resolve_rig(rig), scene)\n"
+        "print('renderer', flush=True)\n"
     )
 
     def __init__(self, argv: list[str], since):
         self.since = since
-        self.lut = threading.Event()
+        self.sliding_mid = threading.Event()
         self.renderer = threading.Event()
         self.tables = threading.Event()
         self.proc = subprocess.Popen(
@@ -299,8 +298,8 @@ class Helper:
     def _read(self) -> None:
         for line in self.proc.stdout:
             step = line.strip()
-            if step == "lut":
-                self.lut.set()
+            if step == "sliding_mid":
+                self.sliding_mid.set()
             elif step == "renderer":
                 print(f"\n      helper: renderer kernels ready after {self.since()}", flush=True)
                 self.renderer.set()
@@ -311,7 +310,7 @@ class Helper:
         self.proc.stdout.close()
         self.proc.wait()
         # wake whoever waits: a failed helper leaves its steps to this process
-        for step in (self.lut, self.renderer, self.tables):
+        for step in (self.sliding_mid, self.renderer, self.tables):
             step.set()
 
     @property
@@ -320,7 +319,7 @@ class Helper:
         return self.proc.returncode not in (None, 0)
 
     def go(self) -> None:
-        """Tell the helper that the band detector's kernels are cached: build the tables now."""
+        """Tell the helper that this process's row kernel is cached: build the tables now."""
         try:
             self.proc.stdin.write("go\n")
             self.proc.stdin.close()
@@ -375,10 +374,10 @@ def in_numba_cache(module, *names: str) -> bool:
 class BandStageWarmUp:
     """Compiles the band stage's kernels as the pipeline calls them, on a striped test image.
 
-    :meth:`detect` compiles the band detector, which the helper process then
-    builds the profile tables with (numba's on-disk cache hands the kernels
-    over); :meth:`rasterise` compiles the slants and the rasterisation onto
-    the analysis grid meanwhile.  Argument types follow
+    :meth:`measure_row` compiles the detector's row kernel, which the helper
+    process builds the profile tables with (numba's on-disk cache hands it
+    over); :meth:`detect` the rest of the detector and :meth:`rasterise` the
+    slants and the rasterisation onto the analysis grid, meanwhile.  Argument types follow
     :class:`~lightflow.app.pipeline.DepthPipeline`: a mismatch would only
     compile a kernel once more.
     """
@@ -402,6 +401,14 @@ class BandStageWarmUp:
         self.cells = (cam.height // s, cam.width // s)
         self.bands = np.empty((2, len(self.row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
         self.counts = np.empty((2, len(self.row_y)), np.int64)
+
+    def measure_row(self) -> None:
+        """Compile (or load) ``bands_in_row``, the detector's measurement of one row."""
+        from lightflow.app import bands as bd
+
+        w = self.image.shape[1]
+        out = np.empty((self.bands.shape[2], self.bands.shape[3]))
+        bd.bands_in_row(np.zeros(w), np.zeros((2, w)), 6.0, 0.3, 1.0, 0.25, out)
 
     def detect(self) -> None:
         """Compile (or load) the band detector's kernels."""
@@ -492,21 +499,19 @@ def run(args: argparse.Namespace) -> int:
           f"({args.frames / args.fps:.1f} s of motion), exposure {scene.exposure_s * 1e3:g} ms, "
           f"colour leak {leak_text}", flush=True)  # fmt: skip
     # A first run on a machine builds tables and compiles kernels (numba, one core
-    # each), all cached.  This process compiles the band detector first, while a
-    # helper process builds the depth table and compiles the renderer; the helper then
-    # builds the band profile tables with the detector's cached kernels while this
-    # process compiles the rest of the pipeline (which needs the profile tables only
-    # half-way).  Frames are rendered ahead on whatever core is left idle.
+    # each), all cached.  This process and a helper process compile the band
+    # detector's two row kernels side by side; the helper then builds the band profile
+    # tables with them while this process compiles the rest of the band stage and
+    # builds the depth table, then compiles the rest of the pipeline (which needs the
+    # profile tables) while the helper compiles the renderer.  Frames are rendered
+    # ahead on whatever core is left idle.
     helper = None
     need_tables = not tables_path().exists()
     if need_tables or not in_numba_cache(render, "render_exposure_fast", "knot_states"):
-        print("[1/4] helper process: the depth table of this rig, the renderer's kernels, then "
-              "the band profile tables (what the band detector reports for every sweep, line "
-              "width and blur); once per machine ...", flush=True)  # fmt: skip
-        dr = config.depth_range
-        helper = Helper([str(args.rig), repr(args.scale), str(config.stride), repr(dr.near),
-                         repr(dr.far), scene.name, "wait" if need_tables else "go"],
-                        since)  # fmt: skip
+        print("[1/4] helper process: half of the band detector's kernels, the band profile tables "
+              "(what the band detector reports for every sweep, line width and blur), then the "
+              "renderer's kernels; once per machine ...", flush=True)  # fmt: skip
+        helper = Helper([str(args.rig), scene.name, "wait" if need_tables else "go"], since)
     else:
         print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
     camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
@@ -519,22 +524,21 @@ def run(args: argparse.Namespace) -> int:
         cached = in_numba_cache(bd, "bands_in_row", "sliding_mid")
         print("[2/4] band detector and rasterisation: "
               + ("their kernels are in the cache" if cached else "their kernels, on a test image"
-                 + (" (the helper builds the profile tables with the detector's)" if need_tables
+                 + (" (the helper builds the profile tables with the row kernels)" if need_tables
                     else "") + " ..."), flush=True)  # fmt: skip
         band_stage = BandStageWarmUp(rig, config)
         with CompileProgress("      band detector") as compiling:
             try:
-                band_stage.detect()
+                band_stage.measure_row()
             finally:
                 if helper is not None:
                     helper.go()
+            if helper is not None:
+                helper.sliding_mid.wait()  # compiled there meanwhile (or left to this process)
+            band_stage.detect()
             band_stage.rasterise()
         print(f"      {compiling.summary()}; ready after {since()}", flush=True)
-        print("[3/4] depth table of this rig (once per rig"
-              + ("; built by the helper" if helper is not None else "") + ") ...",
-              flush=True)  # fmt: skip
-        if helper is not None:
-            helper.lut.wait()  # a failed helper leaves it to this process
+        print("[3/4] depth table of this rig (once per rig) ...", flush=True)
         lut = load_or_build_lut(rig, config.stride, config.depth_range,
                                 Progress("      building the depth table"))  # fmt: skip
         print(f"      ready after {since()}", flush=True)
