@@ -373,40 +373,76 @@ def load_or_build_lut(
     return lut
 
 
-@nb.njit(cache=True, nogil=True)
-def _lookup(logr, offsets, h0, inv_dh, table, out, i0, i1):
-    """``out[q]``: depth at ``logr + offsets[q]`` on grid rows ``i0 .. i1``.
+@nb.njit(cache=True, inline="always")
+def _spline_at(row, t):
+    """Catmull-Rom through the uniform samples ``row`` (clamped ends) at ``t``.
 
-    Each pixel's table row is read once.
+    Returns the value and its derivative in ``t``.
     """
+    m = row.shape[0]
+    j1 = min(int(t), m - 2)
+    f = t - j1
+    p1 = row[j1]
+    p2 = row[j1 + 1]
+    p0 = row[j1 - 1] if j1 > 0 else 2 * p1 - p2
+    p3 = row[j1 + 2] if j1 + 2 < m else 2 * p2 - p1
+    a = p2 - p0
+    b = 2 * p0 - 5 * p1 + 4 * p2 - p3
+    c = 3 * (p1 - p2) + p3 - p0
+    return p1 + 0.5 * f * (a + f * (b + f * c)), 0.5 * (a + f * (2.0 * b + 3.0 * f * c))
+
+
+@nb.njit(cache=True, nogil=True)
+def _lookup(logr, h0, inv_dh, table, z, slope, i0, i1):
+    """Depth at ``logr`` on grid rows ``i0 .. i1``; also ``|dz / dlogr|`` unless
+    ``slope`` is empty.  Each pixel's table row is read once."""
     gw = logr.shape[1]
     m = table.shape[2]
+    want_slope = slope.size > 0
     for i in range(i0, i1):
         for j in range(gw):
             k = inv_dh[i, j]
-            for q in range(offsets.shape[0]):
-                h = logr[i, j] + offsets[q]
-                if not (k > 0.0) or not np.isfinite(h):
-                    out[q, i, j] = np.nan
-                    continue
-                t = (h - h0[i, j]) * k
-                if t < 0.0 or t > m - 1:
-                    out[q, i, j] = np.nan
-                    continue
-                # Catmull-Rom through the uniform samples (clamped at the ends)
-                j1 = min(int(t), m - 2)
-                f = t - j1
-                p1 = table[i, j, j1]
-                p2 = table[i, j, j1 + 1]
-                p0 = table[i, j, j1 - 1] if j1 > 0 else 2 * p1 - p2
-                p3 = table[i, j, j1 + 2] if j1 + 2 < m else 2 * p2 - p1
-                inv_z = p1 + 0.5 * f * (
-                    p2 - p0 + f * (2 * p0 - 5 * p1 + 4 * p2 - p3 + f * (3 * (p1 - p2) + p3 - p0))
-                )
-                out[q, i, j] = 1.0 / inv_z
+            h = logr[i, j]
+            z[i, j] = np.nan
+            if want_slope:
+                slope[i, j] = np.nan
+            if not (k > 0.0) or not np.isfinite(h):
+                continue
+            t = (h - h0[i, j]) * k
+            if t < 0.0 or t > m - 1:
+                continue
+            inv_z, d_inv_z = _spline_at(table[i, j], t)
+            zz = 1.0 / inv_z
+            z[i, j] = zz
+            if want_slope:
+                slope[i, j] = abs(d_inv_z * k) * zz * zz
 
 
-def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray, offsets=None) -> np.ndarray:
+def depth_and_slope(lut: DepthLUT, log_ratio: np.ndarray):
+    """Depth (metres) and ``|dz / dlog_ratio|`` per grid pixel; NaN outside the LUT.
+
+    The depth is :func:`lookup_depth`'s; the slope is the derivative of the
+    same interpolating spline, for the predicted error of each pixel.
+
+    Parameters
+    ----------
+    lut : DepthLUT
+    log_ratio : numpy.ndarray
+        ``(h, w)`` log flow ratios.
+
+    Returns
+    -------
+    (numpy.ndarray, numpy.ndarray)
+        ``(h, w)`` float32 depth and slope (metres per unit of log ratio).
+    """
+    logr = log_ratio.astype(np.float32, copy=False)
+    z = np.empty(logr.shape, np.float32)
+    slope = np.empty(logr.shape, np.float32)
+    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.table, z, slope)
+    return z, slope
+
+
+def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray) -> np.ndarray:
     """Depth ``z`` (metres) for a grid map of measured log flow ratios; NaN outside the LUT.
 
     Parameters
@@ -414,21 +450,15 @@ def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray, offsets=None) -> np.ndarr
     lut : DepthLUT
     log_ratio : numpy.ndarray
         ``(h, w)`` log flow ratios.
-    offsets : sequence of float, optional
-        Look up ``log_ratio + offset`` for each offset instead, in one pass over
-        the table (the same values as ``lookup_depth(lut, log_ratio + offset)``).
 
     Returns
     -------
     numpy.ndarray
-        ``(h, w)`` float32, or ``(len(offsets), h, w)`` with ``offsets``.
+        ``(h, w)`` float32.
     """
-    if offsets is not None and log_ratio.dtype != np.float32:
-        # the sums in float64 first, as numpy forms them, then each map on its own
-        return np.stack([lookup_depth(lut, log_ratio + off) for off in offsets])
     logr = log_ratio.astype(np.float32, copy=False)
-    offs = np.zeros(1, np.float32) if offsets is None else np.asarray(offsets, np.float32)
-    out = np.empty((len(offs), *log_ratio.shape), dtype=np.float32)
+    z = np.empty(logr.shape, np.float32)
     # bands of grid rows on a thread per core (the kernel releases the GIL)
-    run_rows(_lookup, logr.shape[0], logr, offs, lut.h0, lut.inv_dh, lut.table, out)
-    return out[0] if offsets is None else out
+    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.table, z,
+             np.empty((0, 0), np.float32))  # fmt: skip
+    return z

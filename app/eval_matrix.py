@@ -150,7 +150,7 @@ def renderer_version() -> str:
 
 
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
-               progress=None, log=print) -> list:
+               progress=None, log=print, stages: bool = False) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
 
     Recordings are kept in ``out/<case>/`` and reused when the rig, the scene, the
@@ -178,7 +178,7 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
                                exposure_s=case.exposure_s, seed=n, progress=progress)  # fmt: skip
             marker.write_text(version)
         log(f"[{n}/{len(cases)}] scoring {case.name} ...")
-        results.append((case, evaluate_recording(rec, progress=progress)))
+        results.append((case, evaluate_recording(rec, progress=progress, stages=stages)))
     return results
 
 

@@ -126,6 +126,7 @@ class RecordingMetrics:
     within_1sigma: float = math.nan
     within_2sigma: float = math.nan
     no_depth_causes: dict = field(default_factory=dict)
+    stages: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (NaN becomes null), with the per-frame figures."""
@@ -399,6 +400,7 @@ def evaluate_recording(
     rig: Rig | None = None,
     config=None,
     progress: Callable[[str, int, int], None] | None = None,
+    stages: bool = False,
 ) -> RecordingMetrics:
     """Replay every frame of a simulated recording through the pipeline and score it.
 
@@ -412,6 +414,10 @@ def evaluate_recording(
     progress : callable, optional
         ``progress(stage, done, total)`` with stage ``"depth table"`` (LUT build)
         and ``"frames"``.
+    stages : bool
+        Also attribute the error to the stages (:mod:`lightflow.app.stages`),
+        against the true flows in ``ground_truth/<frame>_flows.npz`` or, without
+        them, computed from the built-in scene.
 
     Raises
     ------
@@ -434,6 +440,8 @@ def evaluate_recording(
     rays = camera_rays(rec.rig.camera)
     n_proj = len(rec.rig.projectors)
     per_frame = []
+    stage_frames = []
+    renderer = None
     planar = bool(info.get("planar", False))
     for i, entry in enumerate(rec.frames):
         tpath = tdir / f"{entry.stem}.npz"
@@ -451,6 +459,23 @@ def evaluate_recording(
         result = pipeline.process(frame)
         per_frame.append(evaluate_frame(result.depth, truth, rays, n_proj, result.depth_std,
                                         result.causes_grid, result.stride))  # fmt: skip
+        if stages:
+            from lightflow.app import stages as st
+
+            fpath = tdir / f"{entry.stem}{st.FLOWS_SUFFIX}"
+            if fpath.is_file():
+                flows = st.TrueFlows.load(fpath)
+            else:
+                if renderer is None:
+                    from lightflow.drivers.scenes import get_scene
+                    from lightflow.drivers.synthetic import SceneRenderer
+
+                    renderer = SceneRenderer(rec.rig, get_scene(str(info.get("scene", "?"))))
+                flows = st.true_flows(rec.rig, "", entry.t, rec.exposure_s, renderer)
+            stage_frames.append(st.stage_errors(
+                result.flows_grid, result.log_ratio_grid, result.depth, truth, flows,
+                result.stride, rec.rig.single_projector, result.causes_grid,
+                result.intervals_grid))  # fmt: skip
         if progress:
             progress("frames", i + 1, len(rec.frames))
     return RecordingMetrics(
@@ -461,8 +486,17 @@ def evaluate_recording(
         stride=config.stride,
         planar=planar,
         per_frame=tuple(per_frame),
+        stages=_stage_summary(stage_frames),
         **pool_metrics(per_frame),
     )
+
+
+def _stage_summary(stage_frames: list[dict]) -> dict:
+    if not stage_frames:
+        return {}
+    from lightflow.app.stages import summarise
+
+    return summarise(stage_frames)
 
 
 def write_metrics_json(metrics: list[RecordingMetrics], path: str | Path) -> None:

@@ -239,12 +239,13 @@ def _sweeps(
 
 
 #: channels of the stack averaged around each cell: the two sweeps, where both are
-#: valid, where both patterns have bands, the sweeps squared, the interval ratio, squared
-N_STACK = 8
+#: valid, where both patterns have bands, then the sweeps squared (two projectors) or
+#: the interval ratio and its square (one projector: the ratio is in the intervals)
+N_STACK = 6
 
 
 @nb.njit(cache=True, nogil=True)
-def _pack(sweeps, banded, interval_ratio, stack, i0, i1):
+def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
     """Fill the :data:`N_STACK` channels of ``stack`` (0 where the sweeps are invalid).
 
     Grid rows ``i0 .. i1`` only.
@@ -256,16 +257,18 @@ def _pack(sweeps, banded, interval_ratio, stack, i0, i1):
             a = sweeps[0, i, j]
             b = sweeps[1, i, j]
             if np.isfinite(a) and np.isfinite(b):
-                ir = interval_ratio[i, j]
                 stack[i, j, 0] = a
                 stack[i, j, 1] = b
                 stack[i, j, 2] = 1.0
-                stack[i, j, 4] = a * a
-                stack[i, j, 5] = b * b
-                stack[i, j, 6] = ir
-                stack[i, j, 7] = ir * ir
+                if single:
+                    ir = interval_ratio[i, j]
+                    stack[i, j, 4] = ir
+                    stack[i, j, 5] = ir * ir
+                else:
+                    stack[i, j, 4] = a * a
+                    stack[i, j, 5] = b * b
             else:
-                for c in (0, 1, 2, 4, 5, 6, 7):
+                for c in (0, 1, 2, 4, 5):
                     stack[i, j, c] = 0.0
 
 
@@ -321,9 +324,9 @@ def _decide(
             interval = 0.5 * (grids[0, 1, i, j] + grids[1, 1, i, j])
             n = max(1.0, cells_per_kernel * den / max(1.0, interval))
             if single:
-                ir = blurred[i, j, 6] / den
+                ir = blurred[i, j, 4] / den
                 log_ratio[i, j] = interval_ratio[i, j]
-                lr_var[i, j] = max(blurred[i, j, 7] / den - ir * ir, 0.0) / n
+                lr_var[i, j] = max(blurred[i, j, 5] / den - ir * ir, 0.0) / n
                 lr_sys[i, j] = 0.0
             else:
                 log_ratio[i, j] = math.log(s0 / s1)
@@ -432,7 +435,7 @@ class FlowModel:
         # Both patterns, their common mask and their second moments in one blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
         stack = np.empty((gh, gw, N_STACK), np.float32)
-        run_rows(_pack, gh, sweeps, banded, interval_ratio, stack)
+        run_rows(_pack, gh, sweeps, banded, interval_ratio, self.single, stack)
         blurred = _gauss(stack, sigma) if sigma > 0 else stack
         log_ratio = np.empty((gh, gw), np.float32)
         flows = np.empty((2, gh, gw), np.float32)
@@ -501,26 +504,9 @@ def _gauss(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.blur(once, (k, k), borderType=cv2.BORDER_REFLECT)
 
 
-def masked_smooth(values: np.ndarray, sigma: float, fill_fraction: float = 1.0) -> np.ndarray:
-    """Gaussian smoothing that ignores NaN pixels.
-
-    NaN pixels stay NaN unless at least ``fill_fraction`` of the kernel's
-    weight around them is valid (holes inside a surface are filled; the
-    surface does not grow past its edges).
-    """
-    if sigma <= 0:
-        return values
-    return _masked_smooth(values.astype(np.float32, copy=False), np.isfinite(values), sigma,
-                          fill_fraction)  # fmt: skip
-
-
-def _masked_smooth(values, mask, sigma, fill_fraction):
-    # values: float32, mask: where they are finite (NaN elsewhere)
-    v = np.where(mask, values, np.float32(0.0))
-    num = _gauss(v, sigma)
+def _masked_smooth(planes, mask, sigma, fill_fraction):
+    """Masked smoothing of each float32 ``(h, w)`` plane in ``planes`` over one ``mask``."""
     den = _gauss(mask.astype(np.float32), sigma)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = num / den
     fill = den >= fill_fraction
     if fill_fraction < 1.0:
         # only holes are filled: data on both sides (left and right, or above and
@@ -529,7 +515,12 @@ def _masked_smooth(values, mask, sigma, fill_fraction):
         # More than half the kernel valid is inside a straight edge, never beyond it.
         fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
     fill |= mask
-    np.copyto(out, np.float32(np.nan), where=~fill)
+    den[~fill] = np.nan  # NaN out there, and no division by 0
+    out = []
+    for values in planes:
+        num = _gauss(np.where(mask, values, np.float32(0.0)), sigma)
+        num /= den
+        out.append(num)
     return out
 
 
@@ -550,28 +541,51 @@ def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
 
 
 def smooth_log_ratio(
-    log_ratio: np.ndarray, sigma: float, outlier_sigmas: float, fill_fraction: float = 1.0
-) -> np.ndarray:
-    """Robust masked smoothing: drop outliers against a first smoothing, then smooth again."""
+    log_ratio: np.ndarray, sigma: float, outlier_sigmas: float, fill_fraction: float = 1.0,
+    variance: np.ndarray | None = None,
+):  # fmt: skip
+    """Robust masked smoothing: drop outliers against a first smoothing, then smooth again.
+
+    Parameters
+    ----------
+    log_ratio : numpy.ndarray
+        ``(h, w)`` map, NaN without a value.
+    sigma, outlier_sigmas, fill_fraction : float
+        Gaussian sigma (grid px), outlier threshold in robust deviations, and
+        the share of valid kernel weight that fills a hole inside the surface.
+    variance : numpy.ndarray, optional
+        A per-pixel variance smoothed over the same pixels and kernel.
+
+    Returns
+    -------
+    numpy.ndarray, or (numpy.ndarray, numpy.ndarray) with ``variance``
+    """
+    planes = [log_ratio.astype(np.float32, copy=False)]
+    if variance is not None:
+        planes.append(variance.astype(np.float32, copy=False))
+    mask = np.isfinite(planes[0])
+    for extra in planes[1:]:
+        mask &= np.isfinite(extra)
     if sigma <= 0:
-        return log_ratio
-    if not outlier_sigmas > 0:
-        return masked_smooth(log_ratio, sigma, fill_fraction)
-    # a rough local mean is enough to spot outliers: a box filter costs less
-    log_ratio = log_ratio.astype(np.float32, copy=False)
-    mask = np.isfinite(log_ratio)
-    k = 2 * int(round(sigma)) + 1
-    num = cv2.blur(np.where(mask, log_ratio, np.float32(0.0)), (k, k))
-    den = cv2.blur(mask.astype(np.float32), (k, k))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        first = num / den
-    resid = np.abs(log_ratio - first)
-    sample = resid[::2, ::2]  # the spread of the residuals, from a quarter of them
-    finite = sample[np.isfinite(sample)]
-    if finite.size < 16:
-        return first
-    mad = float(np.median(finite)) * 1.4826 + 1e-6
-    # a NaN residual (no data, or none around) compares false: those are the NaN pixels
-    keep = resid <= outlier_sigmas * mad
+        out = [np.where(mask, v, np.float32(np.nan)) for v in planes]
+        return out[0] if variance is None else tuple(out)
+    log_ratio = planes[0]
+    keep = mask
+    if outlier_sigmas > 0:
+        # a rough local mean is enough to spot outliers: a box filter costs less
+        k = 2 * int(round(sigma)) + 1
+        num = cv2.blur(np.where(mask, log_ratio, np.float32(0.0)), (k, k))
+        den = cv2.blur(mask.astype(np.float32), (k, k))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            first = num / den
+        resid = np.abs(log_ratio - first)
+        resid[~mask] = np.nan
+        sample = resid[::2, ::2]  # the spread of the residuals, from a quarter of them
+        finite = sample[np.isfinite(sample)]
+        if finite.size >= 16:
+            mad = float(np.median(finite)) * 1.4826 + 1e-6
+            # a NaN residual (no data, or none around) compares false: those are the NaN pixels
+            keep = resid <= outlier_sigmas * mad
     # outliers are replaced by their neighbourhood, pixels without data only inside
-    return _masked_smooth(log_ratio, keep, sigma, fill_fraction)
+    out = _masked_smooth(planes, keep, sigma, fill_fraction)
+    return out[0] if variance is None else tuple(out)

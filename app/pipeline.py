@@ -9,15 +9,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, fields
 
-import cv2
 import numpy as np
 
 from . import bands as bd
 from . import causes as cz
-from .depth_model import DepthLUT, DepthRange, load_or_build_lut, lookup_depth
+from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
-from .flow import FlowModel, FlowParams, masked_smooth, smooth_log_ratio
-from .results import BandSet, FrameResult
+from .flow import FlowModel, FlowParams, smooth_log_ratio
+from .intervals import IntervalModel
+from .results import BandSet, FrameResult, upsample_grid
 from .rig import CHANNEL_INDEX, Rig
 
 MAX_BANDS_PER_ROW = 160
@@ -50,6 +50,10 @@ class PipelineConfig:
     max_depth_std : float
         Pixels whose predicted depth standard deviation exceeds this share of
         their depth get none (cause ``uncertain``).
+    predict_intervals : bool
+        Two projectors: where the sparse pattern's measured line interval
+        disagrees with the one its dense partner and the rig predict (curved
+        surfaces), use the prediction (:mod:`lightflow.app.intervals`).
     """
 
     stride: int = 4
@@ -59,6 +63,7 @@ class PipelineConfig:
     crosstalk: str | float = "auto"
     crosstalk_every: int = 30
     max_depth_std: float = 0.03
+    predict_intervals: bool = True
 
     def __post_init__(self):
         if self.stride not in (1, 2, 4):
@@ -112,6 +117,9 @@ class DepthPipeline:
                 f"see `lightflow rig check`"
             )
         self.flow_model = FlowModel(rig)
+        self.intervals = None
+        if cfg.predict_intervals and not rig.single_projector:
+            self.intervals = IntervalModel(rig, cfg.stride, cfg.depth_range)
         self.flow_model.stride = cfg.stride
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
         cam = rig.camera
@@ -193,21 +201,6 @@ class DepthPipeline:
                 wins[p] = int(2 * np.median(iv)) | 1
         return wins
 
-    def _upsample(self, grid: np.ndarray) -> np.ndarray:
-        """Grid (cell centres) to full resolution, bilinear; NaN spreads to its neighbours."""
-        s = self.config.stride
-        gh, gw = grid.shape
-        if (gw * s, gh * s) == self._full_size:
-            # grid samples sit at cell centres, exactly where resize expects them
-            return cv2.resize(grid, self._full_size, interpolation=cv2.INTER_LINEAR)
-        # an image size that is no multiple of the stride: map pixel x to cell (x - off) / s
-        off = 0.5 * (s - 1)
-        m = np.array([[1.0 / s, 0.0, -off / s], [0.0, 1.0 / s, -off / s]])
-        return cv2.warpAffine(
-            grid, m, self._full_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_REPLICATE,
-        )  # fmt: skip
-
     # ------------------------------------------------------------------ public
 
     def warm_up(self) -> float:
@@ -233,7 +226,8 @@ class DepthPipeline:
         return time.perf_counter() - t0
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
-    _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "_buffers", "_full_size"})
+    _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
+                           "_full_size"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:
@@ -314,7 +308,15 @@ class DepthPipeline:
         timings["flow"] = (t3 - t2) * 1e3
         raw, why = fm.log_ratio, fm.why
         # predicted error of each pixel's depth, and no depth where it is too large
-        z_raw, dz_dh = self._depth_and_slope(raw)
+        z_raw, dz_dh = depth_and_slope(self.lut, raw)
+        if self.intervals is not None:
+            # a flow is L / B: with the predicted interval it changes by B / B_predicted
+            fix = self.intervals.correct(grids[:, 1], z_raw)
+            if fix.any():
+                raw = raw + fix[0] - fix[1]
+                for p in range(2):
+                    fm.flows[p] *= np.exp(fix[p])
+                z_raw, dz_dh = depth_and_slope(self.lut, raw)
         why[np.isfinite(raw) & ~np.isfinite(z_raw)] = cz.DEPTH_RANGE
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
@@ -326,19 +328,16 @@ class DepthPipeline:
             uncertain = std > cfg.max_depth_std * z_raw
         why[uncertain] = cz.UNCERTAIN
         raw = np.where(np.isfinite(z_raw) & ~uncertain, raw, np.nan)
-        log_ratio = smooth_log_ratio(
-            raw, sigma_f, cfg.flow.outlier_sigmas, cfg.flow.fill_fraction,
+        # the predicted variance is smoothed with the log ratio, over the same pixels
+        log_ratio, var_grid = smooth_log_ratio(
+            raw, sigma_f, cfg.flow.outlier_sigmas, cfg.flow.fill_fraction, std * std,
         )  # fmt: skip
-        std_grid = np.sqrt(masked_smooth(np.where(np.isfinite(raw), std * std, np.nan),
-                                         sigma_f, cfg.flow.fill_fraction))  # fmt: skip
+        std_grid = np.sqrt(var_grid)
         t4 = time.perf_counter()
         timings["smooth"] = (t4 - t3) * 1e3
         depth_grid = lookup_depth(self.lut, log_ratio)
         std_grid[~np.isfinite(depth_grid)] = np.nan
-        if cfg.stride == 1:
-            depth, depth_std = depth_grid, std_grid
-        else:
-            depth, depth_std = self._upsample(depth_grid), self._upsample(std_grid)
+        depth = upsample_grid(depth_grid, cfg.stride, self._full_size)
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
@@ -358,18 +357,13 @@ class DepthPipeline:
             stride=cfg.stride,
             timings_ms=timings,
             coverage=float(counts_by_cause[cz.DEPTH] / causes.size),
-            depth_std=depth_std,
+            depth_std_grid=std_grid,
             causes_grid=causes,
             cause_counts=counts_by_cause,
             leak_known=bool(cfg.crosstalk != "auto" or self._leak_known.all()),
             warnings=self._warnings(counts_by_cause),
+            intervals_grid=grids[:, 1],
         )
-
-    def _depth_and_slope(self, log_ratio: np.ndarray):
-        """Depth of each log ratio and ``|dz / dlog_ratio|`` from the LUT (NaN outside it)."""
-        eps = 1e-3
-        z_hi, z_lo = lookup_depth(self.lut, log_ratio, offsets=(eps, -eps))  # one table pass
-        return 0.5 * (z_hi + z_lo), np.abs(z_hi - z_lo) / (2 * eps)
 
     def _causes(self, bands, counts, grids, why, raw, log_ratio, depth_grid) -> np.ndarray:
         """One :mod:`.causes` code per grid pixel: ``DEPTH`` or the first reason for none."""

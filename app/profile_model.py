@@ -314,9 +314,11 @@ def joint_at(table, s_lo, s_step, w_step, m_step, r_step, sigma, w, m, r):
     return acc
 
 
-@nb.njit(cache=True, parallel=True)
+# the lookups of the blur fit are serial: a few thousand bands per call, and numba's
+# parallel layer stalled for up to a second under load (once per blur refit, live)
+@nb.njit(cache=True, nogil=True)
 def _joint_many(table, s_lo, s_step, sigma, w, m, r, out):
-    for k in nb.prange(m.shape[0]):
+    for k in range(m.shape[0]):
         out[k] = joint_at(table, s_lo, s_step, W_STEP, M_STEP, R_STEP, sigma[k], w[k], m[k], r[k])
 
 
@@ -346,13 +348,13 @@ def trilinear_at(table, lo0, st0, step1, step2, x0, x1, x2):
     return acc
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def _trilinear(table, ax0, step1, step2, x0, x1, x2, out):
     f0 = x0.ravel()
     f1 = x1.ravel()
     f2 = x2.ravel()
     res = out.ravel()
-    for k in nb.prange(f0.shape[0]):
+    for k in range(f0.shape[0]):
         res[k] = trilinear_at(table, ax0[0], ax0[1] - ax0[0], step1, step2, f0[k], f1[k], f2[k])
 
 

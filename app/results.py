@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
+import cv2
 import numpy as np
 
 from lightflow.drivers.base import Frame
@@ -57,9 +59,11 @@ class FrameResult:
         Time spent in each pipeline stage for this frame.
     coverage : float
         Fraction of the analysis-grid pixels that got a depth ("depth on image").
-    depth_std : numpy.ndarray or None
-        ``(H, W)`` float32 predicted standard deviation of ``depth`` (metres),
-        NaN where there is no depth.
+    depth_std_grid : numpy.ndarray or None
+        Predicted standard deviation of the depth (metres) on the analysis
+        grid, NaN where there is no depth; :attr:`depth_std` is its full
+        resolution map, upsampled on first use (only sinks that show or write
+        it pay for it).
     causes_grid : numpy.ndarray or None
         uint8 :mod:`lightflow.app.causes` code per grid pixel: depth, or why not.
     cause_counts : numpy.ndarray or None
@@ -69,6 +73,10 @@ class FrameResult:
         (until then it is taken as 0).
     warnings : list of str
         Frame-level warnings (for example most pixels out of the model's range).
+    intervals_grid : numpy.ndarray or None
+        ``(2, h, w)``: per pattern, the measured line interval (camera px) on the
+        grid, NaN without bands; with ``flows_grid`` it splits a flow's error into
+        its band length and its interval (``lightflow eval --stages``).
     """
 
     frame: Frame
@@ -79,11 +87,23 @@ class FrameResult:
     stride: int
     timings_ms: dict[str, float] = field(default_factory=dict)
     coverage: float = 0.0
-    depth_std: np.ndarray | None = None
+    depth_std_grid: np.ndarray | None = None
     causes_grid: np.ndarray | None = None
     cause_counts: np.ndarray | None = None
     leak_known: bool = True
     warnings: list[str] = field(default_factory=list)
+    intervals_grid: np.ndarray | None = None
+
+    @cached_property
+    def depth_std(self) -> np.ndarray | None:
+        """``(H, W)`` float32 predicted standard deviation of ``depth`` (metres), or None.
+
+        NaN exactly where ``depth`` is NaN (both are upsampled alike).
+        """
+        if self.depth_std_grid is None:
+            return None
+        h, w = self.depth.shape
+        return upsample_grid(self.depth_std_grid, self.stride, (w, h))
 
 
 @dataclass
@@ -98,3 +118,34 @@ class RunStats:
     latency_ms: float = 0.0
     mib_per_s: float = 0.0
     extra: dict[str, float] = field(default_factory=dict)
+
+
+def upsample_grid(grid: np.ndarray, stride: int, size: tuple[int, int]) -> np.ndarray:
+    """An analysis-grid map at full resolution, bilinear; NaN spreads to its neighbours.
+
+    Parameters
+    ----------
+    grid : numpy.ndarray
+        ``(h, w)`` map with one sample at the centre of each ``stride`` x ``stride`` cell.
+    stride : int
+    size : tuple of int
+        ``(width, height)`` of the full-resolution image.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(height, width)`` map of ``grid``'s dtype.
+    """
+    if stride == 1 and grid.shape == (size[1], size[0]):
+        return grid
+    gh, gw = grid.shape
+    if (gw * stride, gh * stride) == tuple(size):
+        # grid samples sit at cell centres, exactly where resize expects them
+        return cv2.resize(grid, size, interpolation=cv2.INTER_LINEAR)
+    # an image size that is no multiple of the stride: map pixel x to cell (x - off) / s
+    off = 0.5 * (stride - 1)
+    m = np.array([[1.0 / stride, 0.0, -off / stride], [0.0, 1.0 / stride, -off / stride]])
+    return cv2.warpAffine(
+        grid, m, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )  # fmt: skip

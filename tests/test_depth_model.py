@@ -14,6 +14,7 @@ from lightflow.app.depth_model import (
     LUT_SAMPLES,
     DepthRange,
     build_lut,
+    depth_and_slope,
     h_function,
     load_or_build_lut,
     lookup_depth,
@@ -112,9 +113,8 @@ def test_flow_ratio_outside_the_table_has_no_depth(name, luts):
     assert np.all((inside[ok] >= RANGE.near * 0.999) & (inside[ok] <= RANGE.far * 1.001))
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_lookup_with_offsets_equals_one_lookup_per_offset(luts, dtype):
-    """One pass over the table for several offsets gives each lookup's values exactly."""
+def test_depth_and_slope_is_the_lookup_and_its_derivative(luts):
+    """The slope is the lookup's own derivative: central differences agree within 0.5 %."""
     lut = luts["two-projector"]
     ok = lut.usable
     span = np.zeros(lut.h0.shape)
@@ -122,14 +122,19 @@ def test_lookup_with_offsets_equals_one_lookup_per_offset(luts, dtype):
     rng = np.random.default_rng(3)
     # inside, near both ends and outside the table, and pixels without a ratio
     t = rng.uniform(-0.05, 1.05, lut.h0.shape)
-    grid = np.where(ok & (rng.random(lut.h0.shape) > 0.2), lut.h0 + t * span, np.nan).astype(dtype)
+    grid = np.where(ok & (rng.random(lut.h0.shape) > 0.2), lut.h0 + t * span, np.nan)
+    grid = grid.astype(np.float32)
+    z, slope = depth_and_slope(lut, grid)
+    assert z.dtype == slope.dtype == np.float32
+    assert np.array_equal(z, lookup_depth(lut, grid), equal_nan=True)
+    assert np.array_equal(np.isfinite(z), np.isfinite(slope))
     eps = 1e-3
-    both = lookup_depth(lut, grid, offsets=(eps, -eps, 0.0))
-    assert both.shape == (3, *grid.shape) and both.dtype == np.float32
-    for k, expected in enumerate([lookup_depth(lut, grid + eps), lookup_depth(lut, grid - eps),
-                                  lookup_depth(lut, grid)]):  # fmt: skip
-        assert np.array_equal(both[k], expected, equal_nan=True)
-    assert np.count_nonzero(np.isfinite(both[0])) > 0.5 * np.count_nonzero(ok)
+    fd = np.abs(lookup_depth(lut, grid.astype(np.float64) + eps)
+                - lookup_depth(lut, grid.astype(np.float64) - eps)) / (2 * eps)  # fmt: skip
+    both = np.isfinite(fd) & np.isfinite(slope)
+    assert np.count_nonzero(both) > 0.5 * np.count_nonzero(ok)
+    rel = np.abs(slope[both] - fd[both]) / fd[both]
+    assert np.percentile(rel, 99) < 0.005, np.percentile(rel, [50, 99, 100])
 
 
 # ------------------------------------------------------------------ independent h

@@ -64,7 +64,8 @@ def disc_result(rig, index: int) -> FrameResult:
         np.log(grid / (grid * 0.5)), bands, 4,
         timings_ms={"total": 30_000.0 if index == 0 else 40.0 + index},
         coverage=float(disc.mean()),
-        depth_std=np.where(disc, 0.004 + 0.02 * np.abs(xx - cx) / w, np.nan).astype(np.float32),
+        depth_std_grid=np.where(disc, 0.004 + 0.02 * np.abs(xx - cx) / w,
+                                np.nan)[2::4, 2::4].astype(np.float32),
         causes_grid=causes_grid,
         cause_counts=count_causes(causes_grid),
     )  # fmt: skip

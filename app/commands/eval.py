@@ -76,6 +76,10 @@ def register(subparsers) -> None:
         choices=(1, 2, 4),
         help="analysis grid stride of the pipeline (default: the pipeline's)",
     )
+    p.add_argument("--stages", action="store_true",
+                   help="also trace the error to its stage: each pattern's flow against the "
+                   "renderer's true flows (from `simulate --truth-flows`, or computed from "
+                   "the scene), the log ratio and the depth")
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the metrics as JSON")
     p.add_argument("--rig", metavar="RIG", help="rig file overriding the recordings' embedded rig")
     p.set_defaults(func=run)
@@ -163,9 +167,12 @@ def run(args: argparse.Namespace) -> int:
     config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
     results = []
     for rec in args.recordings:
-        results.append(evaluate_recording(rec, rig, config, progress=_progress(str(rec))))
+        results.append(evaluate_recording(rec, rig, config, progress=_progress(str(rec)),
+                                          stages=args.stages))  # fmt: skip
     for line in format_table(results):
         print(line)
+    if args.stages:
+        _print_stages([(str(m.path), m) for m in results])
     if args.json is not None:
         write_metrics_json(results, args.json)
         print(f"metrics written to {args.json}")
@@ -174,6 +181,16 @@ def run(args: argparse.Namespace) -> int:
         plot_error_vs_exposure(results, plot)
         print(f"plot written to {plot}")
     return 0
+
+
+def _print_stages(named) -> None:
+    from lightflow.app.stages import format_stages
+
+    print("\nwhere the error comes from (moving pixels with depth; flows against the "
+          "renderer's truth):")  # fmt: skip
+    for name, m in named:
+        if m.stages:
+            print("  " + format_stages(name, m.stages))
 
 
 def _run_matrix(args: argparse.Namespace) -> int:
@@ -190,10 +207,13 @@ def _run_matrix(args: argparse.Namespace) -> int:
         print(f"\r  {stage} {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
 
     results = run_matrix(out, frames=args.frames, tuning=args.tuning_rigs, progress=progress,
-                         log=lambda text: print(text, file=sys.stderr, flush=True))
+                         log=lambda text: print(text, file=sys.stderr, flush=True),
+                         stages=args.stages)  # fmt: skip
     lines = format_matrix(results)
     for line in lines:
         print(line)
+    if args.stages:
+        _print_stages([(c.name, m) for c, m in results])
     (out / "matrix.md").write_text("\n".join(lines) + "\n")
     doc = {"format": "lightflow-eval-matrix/1",
            "cases": [dict(case=c.name, rig=c.rig_name, **m.to_dict()) for c, m in results]}

@@ -149,6 +149,13 @@ def register(subparsers) -> None:
         metavar="PX",
         help="lens blur in camera pixels: Gaussian sigma or disc radius (default: 0.6)",
     )
+    p.add_argument(
+        "--truth-flows",
+        action="store_true",
+        help="also write each frame's true line sweeps, line intervals (camera px) and flows "
+        "(projector px) per pattern as ground_truth/<frame>_flows.npz, for `lightflow eval "
+        "--stages`",
+    )
     p.set_defaults(func=run)
 
 
@@ -181,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
         rig, args.scene, args.out, frames=args.frames, fps=args.fps, exposure_s=args.exposure,
         seed=args.seed, bit_depth=args.bit_depth, progress=_progress,
         camera_gamma=args.camera_gamma, lens_psf=args.lens_psf, lens_blur_px=args.lens_blur,
+        truth_flows=args.truth_flows,
     )  # fmt: skip
 
 
@@ -198,11 +206,14 @@ def simulate_recording(
     camera_gamma: float = 1.0,
     lens_psf: str = "gauss",
     lens_blur_px: float | None = None,
+    truth_flows: bool = False,
 ) -> int:
     """Render ``frames`` frames of ``scene`` into the recording folder ``out``, with truth.
 
     ``camera_gamma``, ``lens_psf`` and ``lens_blur_px`` select physics the
     reconstruction does not model (see :class:`~lightflow.drivers.synthetic.SensorModel`).
+    ``truth_flows`` also writes each frame's true sweeps, line intervals and flows
+    as ``ground_truth/<frame>_flows.npz`` (:class:`lightflow.app.stages.TrueFlows`).
     Returns the exit status (0).
     """
     from lightflow.app.evaluation import SCENE_FORMAT, SCENE_JSON, TRUTH_DIR
@@ -246,9 +257,20 @@ def simulate_recording(
     }
     (tdir / SCENE_JSON).write_text(json.dumps(scene_doc, indent=1) + "\n")
 
+    flows_renderer = None
+    if truth_flows:
+        from lightflow.drivers.synthetic import SceneRenderer
+
+        flows_renderer = SceneRenderer(rig, info)
+
     def save_truth(root: Path, frame) -> None:
         # runs on the writer thread, after the frame PNG and before recording.json lists it
         frame.extras["truth"].save(root / TRUTH_DIR / f"{frame.stem}.npz")
+        if flows_renderer is not None:
+            from lightflow.app.stages import FLOWS_SUFFIX, true_flows
+
+            flows = true_flows(rig, info.name, frame.timestamp, exposure, flows_renderer)
+            flows.save(root / TRUTH_DIR / f"{frame.stem}{FLOWS_SUFFIX}")
 
     sensor = SensorModel(bit_depth=bit_depth, camera_gamma=camera_gamma, lens_psf=lens_psf)
     if lens_blur_px is not None:

@@ -666,8 +666,8 @@ class RerunSink:
         for channel, flow in zip(self._channels, result.flows_grid, strict=False):
             rec.log(f"flow/{channel}", rr.Image(turbo_rgb(flow, lo, hi)))
         rec.log("flow/log_ratio", rr.Image(turbo_rgb(result.log_ratio_grid, *LOG_RATIO_RANGE)))
-        if result.depth_std is not None:
-            std_mm = result.depth_std[:: result.stride, :: result.stride] * 1e3
+        if result.depth_std_grid is not None:
+            std_mm = result.depth_std_grid * 1e3
             rec.log("uncertainty/depth_std", rr.Image(turbo_rgb(std_mm, 0.0, STD_RANGE_MM)))
         if result.causes_grid is not None:
             rec.log("causes", rr.SegmentationImage(result.causes_grid))

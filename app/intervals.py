@@ -1,0 +1,236 @@
+"""The sparse pattern's line interval, predicted from the dense pattern and the rig.
+
+A flow is a sweep over the local line interval, ``L / B``.  The interval is
+measured from the neighbouring lines, a whole interval away on each side.  On
+a curved object (a ball) the lines of a sparse pattern (60-90 camera px
+apart) bunch up towards the limb, and the mean spacing to the neighbours is
+several per cent shorter than the interval at the band: the flow comes out
+that much too long, and the depth tens of millimetres off.
+
+The two patterns see the same surface.  Along a camera row the surface point
+moves by ``dX/dx = z r_x + (dz/dx) r`` per camera pixel (``r`` the pixel's
+ray), and pattern ``i``'s projector column by ``du_i/dx = A_i(z) + (dz/dx)
+C_i(z)``, with ``A_i`` its change at a fixed depth and ``C_i = du_i/dz`` along
+the ray, both known from the rig.  The dense pattern's interval ``B_d =
+P_d / |du_d/dx|`` fixes ``dz/dx``; that predicts the sparse pattern's interval
+``B_s = P_s / |du_s/dx|``, from lines a few pixels away instead of a whole
+sparse interval.  Where the measured and predicted intervals of the sparse
+pattern disagree by more than :data:`DISAGREE_LOG`, the prediction is used.
+
+Two projectors with uniform patterns only (with one projector the intervals
+themselves are the measurement).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numba as nb
+import numpy as np
+
+from .depth_model import DepthRange
+from .geometry import project_to_projector, undistort_pixels
+from .rig import Rig
+from .threads import run_rows
+
+#: depth samples of the A, C tables (uniform in 1/z over the working range)
+N_DEPTHS = 24
+#: the dense pattern's lines must be at least this many times closer than the sparse
+#: one's for its interval to predict the other's
+DENSER = 2.0
+#: relative bend of the dense intervals over the sparse reach that marks a curved
+#: surface (planes show none; chosen on the tuning rigs)
+CURVED = 0.005
+#: Gaussian sigma (grid cells) over which the disagreement is averaged
+SMOOTH_CELLS = 2.0
+#: the tables are computed on every COARSE-th grid cell and interpolated between
+#: (projections are smooth across the image: 3e-4 relative error; a build of 0.05 s)
+COARSE = 8
+#: |log(measured / predicted interval)| of the sparse pattern above which the
+#: prediction replaces the measurement (the prediction's own error is 1-2 %;
+#: chosen on the tuning rigs of the evaluation matrix)
+DISAGREE_LOG = 0.03
+
+
+class IntervalModel:
+    """Tables ``A_i(z)``, ``C_i(z)`` on a coarse grid over the image, for a two-projector rig.
+
+    Parameters
+    ----------
+    rig : Rig
+        Two projectors with uniform patterns.
+    stride : int
+        Analysis grid stride.
+    depth_range : DepthRange
+    """
+
+    def __init__(self, rig: Rig, stride: int, depth_range: DepthRange):
+        cam = rig.camera
+        self.stride = stride
+        gh, gw = cam.height // stride, cam.width // stride
+        # every COARSE-th analysis cell, one sample past the last cell on each axis
+        ch, cw = (gh - 1) // COARSE + 2, (gw - 1) // COARSE + 2
+        off = 0.5 * (stride - 1)
+        xs = np.arange(cw) * COARSE * stride + off
+        ys = np.arange(ch) * COARSE * stride + off
+        px = np.stack(np.meshgrid(xs, ys), axis=-1)
+
+        def rays(pixels):
+            xy = undistort_pixels(cam.K, cam.dist, pixels)
+            return np.concatenate([xy, np.ones((ch, cw, 1))], axis=-1)
+
+        ray = rays(px)
+        ray_x = rays(px + [0.5, 0.0]) - rays(px - [0.5, 0.0])
+        self.inv_z0 = 1.0 / depth_range.far
+        self.inv_z_step = (1.0 / depth_range.near - self.inv_z0) / (N_DEPTHS - 1)
+        self.pitch = np.array([pat.pitch_px for _, pat in rig.patterns])
+        z = 1.0 / (self.inv_z0 + np.arange(N_DEPTHS) * self.inv_z_step)
+        z = z[:, None, None, None]  # all depths in one projection
+        dz = 1e-4 * z
+        #: (pattern, depth, coarse row, coarse col): du/dx at a fixed depth (per camera
+        #: px), and du/dz along the ray (per metre)
+        self.a = np.empty((2, N_DEPTHS, ch, cw))
+        self.c = np.empty((2, N_DEPTHS, ch, cw))
+        for p, (proj, _pat) in enumerate(rig.patterns):
+            # central differences: half a pixel and a small depth step either way
+            self.a[p] = (project_to_projector(proj, z * (ray + 0.5 * ray_x))[..., 0]
+                         - project_to_projector(proj, z * (ray - 0.5 * ray_x))[..., 0])  # fmt: skip
+            self.c[p] = (project_to_projector(proj, (z + dz) * ray)[..., 0]
+                         - project_to_projector(proj, (z - dz) * ray)[..., 0]) / (2 * dz[..., 0])
+
+    def correct(self, intervals: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Per grid cell, the sparse pattern's ``log(measured / predicted)`` interval.
+
+        Parameters
+        ----------
+        intervals : numpy.ndarray
+            ``(2, h, w)`` measured line intervals (camera px).
+        depth : numpy.ndarray
+            ``(h, w)`` depth estimate (m) to evaluate the geometry at.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(2, h, w)`` float32: per pattern, the log of the factor its flow is to
+            be multiplied by (``log(B_measured / B_predicted)``); 0 where the
+            measurement stands (agreement, no prediction, or the dense pattern).
+        """
+        lg, have = self.disagreement(intervals, depth)
+        # a curved surface biases the measured interval smoothly over a band's reach;
+        # the dense interval's noise, amplified in the prediction, is not smooth: the
+        # disagreement is averaged over a few cells before it is judged
+        for p in range(2):
+            if not have[p].any():
+                continue
+            num = cv2.GaussianBlur(lg[p], (0, 0), SMOOTH_CELLS)
+            den = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = num / den
+            # soft: the part beyond the tolerance, so the correction has no step where
+            # the disagreement crosses it (a step reads as an outlier to the smoothing)
+            soft = np.sign(mean) * np.maximum(np.abs(mean) - DISAGREE_LOG, 0.0)
+            lg[p] = np.where((have[p] > 0) & self._curved(intervals, p, have[p] > 0), soft, 0.0)
+        return lg
+
+    def disagreement(self, intervals: np.ndarray, depth: np.ndarray):
+        """Per grid cell, ``log(measured / predicted)`` interval of the sparse pattern.
+
+        Parameters
+        ----------
+        intervals : numpy.ndarray
+            ``(2, h, w)`` measured line intervals (camera px).
+        depth : numpy.ndarray
+            ``(h, w)`` depth (m).
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray)
+            ``(2, h, w)`` float32 log ratios (0 for the dense pattern), and 1 where a
+            prediction was made (the sparse pattern of a cell with both intervals and
+            a depth in range), else 0.
+        """
+        lg = np.zeros((2, *depth.shape), np.float32)
+        have = np.zeros((2, *depth.shape), np.float32)
+        run_rows(_disagreement, depth.shape[0], intervals, depth, self.a, self.c, self.pitch,
+                 self.inv_z0, self.inv_z_step, COARSE, DENSER, lg, have)  # fmt: skip
+        return lg, have
+
+    def _curved(self, intervals: np.ndarray, sparse: int, where: np.ndarray) -> np.ndarray:
+        """Where the dense pattern's intervals bend over the sparse pattern's reach.
+
+        The sparse interval is the mean spacing to the neighbours, half a sparse
+        interval ``h`` either side: it is off by about ``(B(x - h) + B(x + h)) / 2 -
+        B(x)``.  On a plane the intervals change linearly and that is 0; where the
+        dense pattern shows it above :data:`CURVED`, the surface bends.
+        """
+        dense = np.where(np.isfinite(intervals[1 - sparse]), intervals[1 - sparse], 0.0)
+        valid = (dense > 0).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b = (cv2.GaussianBlur(dense.astype(np.float32), (0, 0), SMOOTH_CELLS)
+                 / cv2.GaussianBlur(valid, (0, 0), SMOOTH_CELLS))  # fmt: skip
+        h = int(round(float(np.median(intervals[sparse][where])) / (2 * self.stride)))
+        if h < 1 or 2 * h >= b.shape[1]:
+            return np.zeros(b.shape, bool)
+        side = np.full(b.shape, np.nan, np.float32)
+        side[:, h:-h] = 0.5 * (b[:, : -2 * h] + b[:, 2 * h :])
+        with np.errstate(invalid="ignore"):
+            return np.abs(side / b - 1.0) > CURVED
+
+
+@nb.njit(cache=True, inline="always")
+def _at(tab, p, k, f, r0, fr, c0, fc):
+    """Table ``tab[p]`` at depth index ``k + f`` and coarse position ``(r0 + fr, c0 + fc)``."""
+    acc = 0.0
+    for dk in range(2):
+        wk = f if dk else 1.0 - f
+        for dr in range(2):
+            wr = fr if dr else 1.0 - fr
+            acc += wk * wr * ((1.0 - fc) * tab[p, k + dk, r0 + dr, c0]
+                              + fc * tab[p, k + dk, r0 + dr, c0 + 1])  # fmt: skip
+    return acc
+
+
+@nb.njit(cache=True, nogil=True)
+def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, denser, out,
+                  have, i0, i1):  # fmt: skip
+    """``out[s]``: log(measured / predicted) interval of the sparse pattern ``s`` of each
+    cell, ``have[s]`` 1 there (grid rows ``i0 .. i1``)."""
+    nz = a.shape[1]
+    gw = depth.shape[1]
+    for i in range(i0, i1):
+        r0 = i // coarse
+        fr = (i - r0 * coarse) / coarse
+        for j in range(gw):
+            z = depth[i, j]
+            b0 = intervals[0, i, j]
+            b1 = intervals[1, i, j]
+            if not (z > 0.0 and b0 > 0.0 and b1 > 0.0):
+                continue
+            t = (1.0 / z - inv_z0) / inv_z_step
+            if not (0.0 <= t <= nz - 1):
+                continue
+            k = min(int(t), nz - 2)
+            f = t - k
+            c0 = j // coarse
+            fc = (j - c0 * coarse) / coarse
+            # the dense pattern (the shorter interval) is the reference, if it samples the
+            # surface at least DENSER times as finely: else it knows no more
+            d = 0 if b0 <= b1 else 1
+            s = 1 - d
+            if intervals[s, i, j] < denser * intervals[d, i, j]:
+                continue
+            ad = _at(a, d, k, f, r0, fr, c0, fc)
+            cd = _at(c, d, k, f, r0, fr, c0, fc)
+            as_ = _at(a, s, k, f, r0, fr, c0, fc)
+            cs = _at(c, s, k, f, r0, fr, c0, fc)
+            if cd == 0.0 or ad == 0.0:
+                continue
+            # the measured dense interval fixes dz/dx (same sign of du/dx as at a fixed depth)
+            du_d = math.copysign(pitch[d] / intervals[d, i, j], ad)
+            g = (du_d - ad) / cd
+            du_s = as_ + g * cs
+            if du_s == 0.0 or (du_s > 0.0) != (as_ > 0.0):
+                continue  # the prediction folds the surface over: keep the measurement
+            out[s, i, j] = math.log(intervals[s, i, j] * abs(du_s) / pitch[s])
+            have[s, i, j] = 1.0
