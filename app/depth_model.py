@@ -31,12 +31,13 @@ import numba as nb
 import numpy as np
 
 from .errors import ConfigError
-from .geometry import camera_rays
-from .patterns import exp2_step
+from .geometry import LENS_COEFFICIENTS, camera_rays, lens_coefficients, lens_distort_derivative
+from .patterns import pattern_code, pitch_at
 from .rig import Rig
 from .threads import run_rows
 
-LUT_VERSION = 4
+#: 5: the tilted-sensor lens terms are applied (tables of tilted rigs changed)
+LUT_VERSION = 5
 #: inverse-depth samples per pixel in the LUT (96 bytes/pixel with the two scalars: 184 MB
 #: at 1600x1200 with stride 1)
 LUT_SAMPLES = 22
@@ -58,29 +59,29 @@ class DepthRange:
 
 # ---------------------------------------------------------------- pattern coding for numba
 
-_KIND_CODE = {"uniform": 0, "exp2": 1, "exp2-reversed": 2}
-
 
 def pattern_params(rig: Rig) -> np.ndarray:
-    """Per pattern: [proj index, kind code, pitch or exp2 step, projector width]."""
+    """Per pattern: [proj index, kind code, pitch or exp2 step, projector width].
+
+    Kind code and step are :func:`lightflow.app.patterns.pattern_code`, read by
+    :func:`lightflow.app.patterns.pitch_at`.
+    """
     rows = []
     for pi, proj in enumerate(rig.projectors):
         for pat in proj.patterns:
-            code = _KIND_CODE[pat.kind]
-            step = pat.pitch_px if code == 0 else exp2_step(pat)
+            code, step = pattern_code(pat)
             rows.append([pi, code, step, proj.width])
     return np.array(rows, dtype=np.float64)
 
 
 def _projector_params(rig: Rig) -> np.ndarray:
-    """Per projector: R (9), t (3), fx, skew, cx, fy, cy, dist (12) = 29 numbers."""
-    out = np.zeros((len(rig.projectors), 29))
+    """Per projector: R (9), t (3), fx, skew, cx, fy, cy, then :func:`lens_coefficients`."""
+    out = np.zeros((len(rig.projectors), 17 + LENS_COEFFICIENTS))
     for i, p in enumerate(rig.projectors):
         out[i, :9] = p.R.ravel()
         out[i, 9:12] = p.t
         out[i, 12:17] = [p.K[0, 0], p.K[0, 1], p.K[0, 2], p.K[1, 1], p.K[1, 2]]
-        d = p.dist[:12]
-        out[i, 17 : 17 + len(d)] = d
+        out[i, 17:] = lens_coefficients(p.dist)
     return out
 
 
@@ -98,47 +99,10 @@ def _proj_u_du(pp, x, y, z):
     yn = py / pz
     dxn = (X * pz - Z * px) / (pz * pz)
     dyn = (Y * pz - Z * py) / (pz * pz)
-    k1, k2, p1, p2, k3, k4, k5, k6 = pp[17], pp[18], pp[19], pp[20], pp[21], pp[22], pp[23], pp[24]
-    s1, s2 = pp[25], pp[26]
-    r2 = xn * xn + yn * yn
-    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    rad = num / den
-    dnum = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
-    dden = k4 + r2 * (2.0 * k5 + 3.0 * r2 * k6)
-    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
-    xd = xn * rad + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn) + s1 * r2 + s2 * r2 * r2
-    yd = yn * rad + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn + pp[27] * r2 + pp[28] * r2 * r2
-    dr2 = 2 * (xn * dxn + yn * dyn)
-    dxd = (
-        dxn * rad
-        + xn * drad * dr2
-        + 2 * p1 * (dxn * yn + xn * dyn)
-        + p2 * (dr2 + 4 * xn * dxn)
-        + s1 * dr2
-        + 2 * s2 * r2 * dr2
-    )
-    dyd = (
-        dyn * rad
-        + yn * drad * dr2
-        + p1 * (dr2 + 4 * yn * dyn)
-        + 2 * p2 * (dxn * yn + xn * dyn)
-        + pp[27] * dr2
-        + 2 * pp[28] * r2 * dr2
-    )
+    xd, yd, dxd, dyd = lens_distort_derivative(pp[17:], xn, yn, dxn, dyn)
     u = pp[12] * xd + pp[13] * yd + pp[14]
     du = pp[12] * dxd + pp[13] * dyd
     return u, du, pz
-
-
-@nb.njit(cache=True, inline="always")
-def pitch_at(code, step, width, u):
-    """Local line pitch (projector px) at column ``u`` for a pattern coded by pattern_params."""
-    if code == 0:
-        return step
-    if code == 1:
-        return (u + width) * step
-    return (2.0 * width - u) * step
 
 
 @nb.njit(cache=True)

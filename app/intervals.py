@@ -116,11 +116,22 @@ class IntervalModel:
             be multiplied by (``log(B_measured / B_predicted)``); 0 where the
             measurement stands (agreement, no prediction, or the dense pattern).
         """
-        lg, have = self.disagreement(intervals, depth)
+        out = np.zeros((2, *depth.shape), np.float32)
+        # which pattern is the sparse one, from a quarter of the cells (that is enough)
+        sample = intervals[:, ::2, ::2]
+        both = np.isfinite(sample).all(axis=0)
+        if np.count_nonzero(both) < 16:
+            return out
+        med = np.median(sample[:, both], axis=1)
+        sparse = int(med[1] > med[0])
+        curved = self._curved(intervals, sparse, float(med[sparse]))
+        if not curved.any():
+            return out  # a plane (or a gentle curve): every measured interval stands
+        lg, have = self.disagreement(intervals, np.where(curved, depth, np.nan))
         # a curved surface biases the measured interval smoothly over a band's reach;
         # the dense interval's noise, amplified in the prediction, is not smooth: the
         # disagreement is averaged over a few cells before it is judged
-        for p in range(2):
+        for p in range(2):  # the sparse pattern of each cell (mostly one pattern)
             if not have[p].any():
                 continue
             num = cv2.GaussianBlur(lg[p], (0, 0), SMOOTH_CELLS)
@@ -130,8 +141,8 @@ class IntervalModel:
             # soft: the part beyond the tolerance, so the correction has no step where
             # the disagreement crosses it (a step reads as an outlier to the smoothing)
             soft = np.sign(mean) * np.maximum(np.abs(mean) - DISAGREE_LOG, 0.0)
-            lg[p] = np.where((have[p] > 0) & self._curved(intervals, p, have[p] > 0), soft, 0.0)
-        return lg
+            out[p] = np.where(have[p] > 0, soft, 0.0)
+        return out
 
     def disagreement(self, intervals: np.ndarray, depth: np.ndarray):
         """Per grid cell, ``log(measured / predicted)`` interval of the sparse pattern.
@@ -156,7 +167,7 @@ class IntervalModel:
                  self.inv_z0, self.inv_z_step, COARSE, DENSER, lg, have)  # fmt: skip
         return lg, have
 
-    def _curved(self, intervals: np.ndarray, sparse: int, where: np.ndarray) -> np.ndarray:
+    def _curved(self, intervals: np.ndarray, sparse: int, sparse_interval: float) -> np.ndarray:
         """Where the dense pattern's intervals bend over the sparse pattern's reach.
 
         The sparse interval is the mean spacing to the neighbours, half a sparse
@@ -169,7 +180,7 @@ class IntervalModel:
         with np.errstate(invalid="ignore", divide="ignore"):
             b = (cv2.GaussianBlur(dense.astype(np.float32), (0, 0), SMOOTH_CELLS)
                  / cv2.GaussianBlur(valid, (0, 0), SMOOTH_CELLS))  # fmt: skip
-        h = int(round(float(np.median(intervals[sparse][where])) / (2 * self.stride)))
+        h = int(round(sparse_interval / (2 * self.stride)))
         if h < 1 or 2 * h >= b.shape[1]:
             return np.zeros(b.shape, bool)
         side = np.full(b.shape, np.nan, np.float32)

@@ -1,4 +1,4 @@
-"""Line patterns exactly as formats.md defines them (pure numpy).
+"""Line patterns exactly as formats.md defines them (numpy; the pitch also for numba).
 
 Line k covers the projector columns x with ``|x - u_k| <= width_px / 2``.
 Because a projector lights whole pixels, the light of line k physically spans
@@ -6,7 +6,8 @@ Because a projector lights whole pixels, the light of line k physically spans
 
 For flow measurement every pattern has a continuous *line index* k(u): the
 lines sit at integer k, so a band's sweep divided by the local line interval
-is a flow in index units.  ``local_pitch(u)`` converts it to projector pixels.
+is a flow in index units.  ``local_pitch(u)`` (the numba kernels: ``pitch_at``)
+converts it to projector pixels.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba.extending import register_jitable
 
 from .rig import CHANNEL_INDEX, Pattern, ProjectorModel
 
@@ -71,18 +73,55 @@ def exp2_step(pattern: Pattern) -> float:
     return (2 ** (1 / pattern.lines) - 2 ** (-1 / pattern.lines)) / 2
 
 
+#: kind codes of :func:`pattern_code` (numba kernels take numbers, not strings)
+KIND_CODE = {"uniform": 0, "exp2": 1, "exp2-reversed": 2}
+
+
+def pattern_code(pattern: Pattern) -> tuple[int, float]:
+    """``(kind code, step)`` of a pattern for :func:`pitch_at`.
+
+    The step is the pitch of a uniform pattern and :func:`exp2_step` of the others.
+    """
+    code = KIND_CODE[pattern.kind]
+    return code, float(pattern.pitch_px if code == 0 else exp2_step(pattern))
+
+
+@register_jitable
+def pitch_at(code, step, width, u):
+    """Local line interval (projector px) at column ``u``: the one pitch formula.
+
+    Parameters
+    ----------
+    code, step : int, float
+        From :func:`pattern_code`.
+    width : float
+        Projector width W in pixels.
+    u : float or numpy.ndarray
+        Projector column (a scalar in numba kernels, which compile this in).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        ``step`` for uniform patterns (a scalar); ``(u + W) step`` for exp2 and
+        ``(2 W - u) step`` for exp2-reversed, the exact symmetric difference
+        ``(u_{k+1} - u_{k-1}) / 2`` at a line ``u_k``.
+    """
+    if code == 0:
+        return step
+    if code == 1:
+        return (u + width) * step
+    return (2.0 * width - u) * step
+
+
 def local_pitch(pattern: Pattern, width: int, u):
-    """Local line interval in projector pixels at column ``u``.
+    """Local line interval in projector pixels at column ``u`` (:func:`pitch_at` on arrays).
 
     For exp2 patterns this is the exact symmetric difference
     ``(u_{k+1} - u_{k-1}) / 2`` at a line ``u_k``, which is linear in ``u``.
     """
     u = np.asarray(u, dtype=np.float64)
-    if pattern.kind == "uniform":
-        return np.full_like(u, pattern.pitch_px)
-    if pattern.kind == "exp2":
-        return (u + width) * exp2_step(pattern)
-    return (2 * width - u) * exp2_step(pattern)
+    code, step = pattern_code(pattern)
+    return np.broadcast_to(pitch_at(code, step, width, u), u.shape).copy()
 
 
 def line_index(pattern: Pattern, width: int, u):

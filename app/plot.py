@@ -1,7 +1,9 @@
-"""A small line-plot renderer on OpenCV (no matplotlib): axes, ticks, labels, legend.
+"""Line plots with matplotlib (Agg, no display): axes, ticks, labels, legend.
 
 Used by ``lightflow eval`` to draw depth error against exposure.  Images are
-BGR uint8 arrays, as :func:`cv2.imwrite` expects.
+BGR uint8 arrays, as :func:`cv2.imwrite` expects.  Figures are drawn on their
+own Agg canvas (no pyplot, no global state), so plotting needs no display and
+is safe from any thread.
 """
 
 from __future__ import annotations
@@ -12,16 +14,19 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from lightflow.app.errors import ConfigError
 
-FONT = cv2.FONT_HERSHEY_SIMPLEX
-#: a colour-blind-safe cycle (Okabe-Ito), BGR
+#: a colour-blind-safe cycle (Okabe-Ito), BGR like the images
 COLOURS = (
     (178, 114, 0), (0, 94, 213), (115, 158, 0), (167, 121, 204), (233, 180, 86),
     (66, 228, 240), (0, 0, 0),
 )  # fmt: skip
-MARKERS = ("circle", "square", "triangle", "diamond")
+#: matplotlib marker per series: circle, square, triangle, diamond
+MARKERS = ("o", "s", "^", "D")
+DPI = 100
 
 
 @dataclass(frozen=True)
@@ -59,29 +64,8 @@ def _fmt(v: float, step: float) -> str:
     return f"{v:.{decimals}f}"
 
 
-def _text(img, text, org, scale=0.5, colour=(0, 0, 0), thickness=1, anchor="left"):
-    (w, h), base = cv2.getTextSize(text, FONT, scale, thickness)
-    x, y = org
-    if anchor == "centre":
-        x -= w // 2
-    elif anchor == "right":
-        x -= w
-    cv2.putText(img, text, (int(x), int(y)), FONT, scale, colour, thickness, cv2.LINE_AA)
-    return w, h + base
-
-
-def _marker(img, centre, kind, colour, r=5):
-    x, y = centre
-    if kind == "circle":
-        cv2.circle(img, centre, r, colour, -1, cv2.LINE_AA)
-    elif kind == "square":
-        cv2.rectangle(img, (x - r + 1, y - r + 1), (x + r - 1, y + r - 1), colour, -1)
-    else:
-        if kind == "triangle":
-            pts = [(x, y - r), (x + r, y + r - 1), (x - r, y + r - 1)]
-        else:
-            pts = [(x, y - r), (x + r, y), (x, y + r), (x - r, y)]
-        cv2.fillPoly(img, [np.array(pts, np.int32)], colour, cv2.LINE_AA)
+def _rgb(bgr: tuple[int, int, int]) -> tuple[float, float, float]:
+    return bgr[2] / 255.0, bgr[1] / 255.0, bgr[0] / 255.0
 
 
 def line_plot(
@@ -110,7 +94,8 @@ def line_plot(
         ``(height, width, 3)`` BGR uint8 image.
     """
     width, height = size
-    img = np.full((height, width, 3), 255, np.uint8)
+    if width < 200 or height < 150:
+        raise ConfigError(f"plot size {width}x{height}: too small")
     xs = np.array([v for s in series for v in s.x], dtype=np.float64)
     ys = np.array([v for s in series for v in s.y], dtype=np.float64)
     ok = np.isfinite(xs) & np.isfinite(ys)
@@ -124,88 +109,42 @@ def line_plot(
     y_lo, y_hi = float(ys[ok].min()), float(ys[ok].max())
     ylo = min(0.0, y_lo) if y_from_zero else y_lo - 0.05 * (y_hi - y_lo)
     yt = nice_ticks(ylo, y_hi + 0.08 * (y_hi - ylo))
-    # margins: room for tick labels, axis labels and title
-    left, right = 90, 30
-    top, bottom = (50 if title else 25), 70
-    x0, x1, y0, y1 = left, width - right, height - bottom, top
-    if x1 - x0 < 50 or y0 - y1 < 50:
-        raise ConfigError(f"plot size {width}x{height}: too small")
 
-    def px(x, y):
-        u = x0 + (x - xt[0]) / (xt[-1] - xt[0]) * (x1 - x0)
-        v = y0 - (y - yt[0]) / (yt[-1] - yt[0]) * (y0 - y1)
-        return int(round(u)), int(round(v))
-
-    grid, axis = (225, 225, 225), (40, 40, 40)
-    for t in xt:
-        u, _ = px(t, yt[0])
-        cv2.line(img, (u, y1), (u, y0), grid, 1)
-        cv2.line(img, (u, y0), (u, y0 + 5), axis, 1)
-        _text(img, _fmt(t, xt[1] - xt[0]), (u, y0 + 22), 0.45, axis, anchor="centre")
-    for t in yt:
-        _, v = px(xt[0], t)
-        cv2.line(img, (x0, v), (x1, v), grid, 1)
-        cv2.line(img, (x0 - 5, v), (x0, v), axis, 1)
-        _text(img, _fmt(t, yt[1] - yt[0]), (x0 - 9, v + 5), 0.45, axis, anchor="right")
-    cv2.rectangle(img, (x0, y1), (x1, y0), axis, 1)
+    fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI, facecolor="white")
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    axis = _rgb((40, 40, 40))
+    ax.set_xlim(xt[0], xt[-1])
+    ax.set_ylim(yt[0], yt[-1])
+    ax.set_xticks(xt, [_fmt(t, xt[1] - xt[0]) for t in xt])
+    ax.set_yticks(yt, [_fmt(t, yt[1] - yt[0]) for t in yt])
+    ax.grid(True, color=_rgb((225, 225, 225)), linewidth=1)
+    ax.set_axisbelow(True)
+    ax.tick_params(colors=axis, labelsize=9)
+    for spine in ax.spines.values():
+        spine.set_color(axis)
     if title:
-        _text(img, title, ((x0 + x1) // 2, top - 18), 0.6, axis, 1, anchor="centre")
+        ax.set_title(title, color=axis, fontsize=11)
     if xlabel:
-        _text(img, xlabel, ((x0 + x1) // 2, height - 18), 0.55, axis, anchor="centre")
+        ax.set_xlabel(xlabel, color=axis, fontsize=10)
     if ylabel:
-        (tw, th), base = cv2.getTextSize(ylabel, FONT, 0.55, 1)
-        strip = np.full((th + base + 6, tw + 6, 3), 255, np.uint8)
-        _text(strip, ylabel, (3, th + 3), 0.55, axis)
-        strip = cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
-        sy = max(0, (y0 + y1) // 2 - strip.shape[0] // 2)
-        sh = min(strip.shape[0], height - sy)
-        img[sy : sy + sh, 12 : 12 + strip.shape[1]] = strip[:sh]
-
-    all_pts = []
+        ax.set_ylabel(ylabel, color=axis, fontsize=10)
     for k, s in enumerate(series):
-        colour, marker = COLOURS[k % len(COLOURS)], MARKERS[k % len(MARKERS)]
-        pts = [
-            px(x, y) if math.isfinite(x) and math.isfinite(y) else None
-            for x, y in zip(s.x, s.y, strict=True)
-        ]
-        for a, b in zip(pts, pts[1:], strict=False):
-            if a is not None and b is not None:
-                cv2.line(img, a, b, colour, 2, cv2.LINE_AA)
-        for p in pts:
-            if p is not None:
-                _marker(img, p, marker, colour)
-        all_pts += [p for p in pts if p is not None]
-    _legend(img, series, (x0, y1, x1, y0), all_pts)
-    return img
-
-
-def _legend(img, series, frame, points) -> None:
-    if not series:
-        return
-    row_h, swatch = 22, 34
-    widths = [cv2.getTextSize(s.label, FONT, 0.5, 1)[0][0] for s in series]
-    w = swatch + 12 + max(widths) + 10
-    h = row_h * len(series) + 8
-    fx0, fy0, fx1, fy1 = frame
-    corners = [(fx1 - 12 - w, fy0 + 12), (fx0 + 12, fy0 + 12),
-               (fx1 - 12 - w, fy1 - 12 - h), (fx0 + 12, fy1 - 12 - h)]  # fmt: skip
-    pts = np.array(points, dtype=np.float64).reshape(-1, 2)
-
-    def hidden(corner):
-        cx, cy = corner
-        inside = (pts[:, 0] > cx - 8) & (pts[:, 0] < cx + w + 8)
-        return int(np.count_nonzero(inside & (pts[:, 1] > cy - 8) & (pts[:, 1] < cy + h + 8)))
-
-    # the corner that hides the fewest data points (top right first, like most plots)
-    x, y = min(corners, key=hidden)
-    cv2.rectangle(img, (x, y), (x + w, y + h), (255, 255, 255), -1)
-    cv2.rectangle(img, (x, y), (x + w, y + h), (150, 150, 150), 1)
-    for k, s in enumerate(series):
-        colour, marker = COLOURS[k % len(COLOURS)], MARKERS[k % len(MARKERS)]
-        cy = y + 4 + row_h * k + row_h // 2
-        cv2.line(img, (x + 6, cy), (x + 6 + swatch, cy), colour, 2, cv2.LINE_AA)
-        _marker(img, (x + 6 + swatch // 2, cy), marker, colour)
-        _text(img, s.label, (x + swatch + 14, cy + 5), 0.5, (40, 40, 40))
+        # NaN values break the line, as matplotlib draws them
+        ax.plot(
+            np.asarray(s.x, np.float64), np.asarray(s.y, np.float64),
+            color=_rgb(COLOURS[k % len(COLOURS)]), marker=MARKERS[k % len(MARKERS)],
+            markersize=7, linewidth=2, label=s.label,
+        )  # fmt: skip
+    if series:
+        # the place that hides the fewest data points
+        ax.legend(loc="best", fontsize=9, edgecolor=_rgb((150, 150, 150)), framealpha=1.0)
+    fig.tight_layout()
+    canvas.draw()
+    rgba = np.asarray(canvas.buffer_rgba())
+    if rgba.shape[:2] != (height, width):
+        rgba = cv2.resize(rgba, (width, height), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(rgba[..., 2::-1])
 
 
 def save_png(img: np.ndarray, path: str | Path) -> None:

@@ -2,11 +2,14 @@
 
 For every camera pixel it integrates, over the exposure, the light of the
 projected line patterns on the moving scene: ray-scene intersection, shadow
-rays to each projector, projection into each projector with the full OpenCV
-lens model, line boxes blurred by projector defocus, Lambertian shading with
-inverse-square fall-off, ambient light and colour crosstalk.  Time and pixel
-area are integrated together with stratified samples.  Noise and 8-bit
-quantisation are applied by :func:`expose`.
+rays to each projector, projection into each projector with OpenCV's own
+lens model (tabulated from ``cv2.projectPoints``), line boxes blurred by
+projector defocus, Lambertian shading with inverse-square fall-off, ambient
+light and colour crosstalk.  Time and pixel area are integrated together with
+stratified samples.  Noise and 8-bit quantisation are applied by
+:func:`expose`.  It shares no geometry code with the reconstruction: camera
+rays and projector pixels come from OpenCV, patterns are rasterised by
+:mod:`lightflow.drivers.synthetic` from the format's definition.
 
 Scene primitives are rows of a float64 array (see ``PRIM_*`` and the builders
 in :mod:`lightflow.drivers.scenes`) so that the kernel stays one compiled loop.
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numba as nb
 import numpy as np
 
@@ -190,21 +194,185 @@ def _trace(prims, ox, oy, oz, dx, dy, dz, t, tex, tmax):
     return best, bi, bnx, bny, bnz, balb
 
 
+# ---------------------------------------------------------------------------
+# Projector lens: OpenCV's own projection, tabulated
+#
+# The renderer has no lens model of its own and does not share the core's: a
+# projector's distortion is a table of cv2.projectPoints over a grid of
+# undistorted normalised coordinates covering its panel, read with Catmull-Rom
+# interpolation, and refined until it reproduces OpenCV to LENS_TABLE_TOL px.
+# A lens model error in the core then shows against the simulator.  Directions
+# outside the panel's undistorted extent are not lit: there OpenCV's polynomial
+# can fold far-off-axis rays back onto the panel, which no real lens does.
+# ---------------------------------------------------------------------------
+
+#: numbers before the lens table in a packed projector row (see pack_projector)
+PROJ_HEADER = 29
+#: largest error (projector px) of the interpolated lens table against cv2.projectPoints
+LENS_TABLE_TOL = 1e-7
+#: lens tables kept per projector (building one takes up to seconds for a strong lens)
+_LENS_TABLES: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+
+
+def opencv_distort(dist, xy: np.ndarray) -> np.ndarray:
+    """Distorted normalised coordinates ``(n, 2)`` of ``xy`` by OpenCV's ``projectPoints``."""
+    pts = np.column_stack([xy, np.ones(len(xy))])
+    out, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), np.eye(3), np.asarray(dist, float))
+    return out.reshape(-1, 2)
+
+
+def _normalised(K: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Distorted normalised coordinates of pixels under ``K`` (skew included)."""
+    yd = (pixels[:, 1] - K[1, 2]) / K[1, 1]
+    xd = (pixels[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
+    return np.column_stack([xd, yd])
+
+
+def opencv_undistort(K: np.ndarray, dist, pixels: np.ndarray) -> np.ndarray:
+    """Undistorted normalised coordinates ``(n, 2)`` of ``pixels`` by OpenCV.
+
+    OpenCV's model has no skew; the rig format's ``K[0, 1]`` is taken out first.
+    """
+    xy = _normalised(np.asarray(K, np.float64), np.asarray(pixels, np.float64))
+    und = cv2.undistortPointsIter(
+        xy.reshape(-1, 1, 2), np.eye(3), np.asarray(dist, np.float64), None, None,
+        _UNDISTORT_CRITERIA,
+    )  # fmt: skip
+    return und.reshape(-1, 2)
+
+
+def lens_table(K, dist, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's distortion of a projector tabulated over its panel.
+
+    Parameters
+    ----------
+    K, dist : array_like
+        The projector's intrinsics and OpenCV distortion coefficients.
+    width, height : int
+        Panel size in pixels.
+
+    Returns
+    -------
+    header : numpy.ndarray
+        ``[x0, y0, 1 / step, nx, ny]``: the grid's origin and step in
+        undistorted normalised coordinates and its size (``ny = 0``: no
+        distortion, no table).
+    table : numpy.ndarray
+        ``(ny * nx * 2,)`` distorted ``(x, y)`` at the grid nodes, row major.
+    """
+    K = np.asarray(K, np.float64)
+    dist = np.asarray(dist, np.float64).ravel()
+    if not np.any(dist):
+        return np.zeros(5), np.zeros(0)
+    key = K.tobytes() + dist.tobytes() + np.array([width, height]).tobytes()
+    if key not in _LENS_TABLES:
+        if len(_LENS_TABLES) > 4:
+            _LENS_TABLES.clear()
+        _LENS_TABLES[key] = _build_lens_table(K, dist, width, height)
+        for a in _LENS_TABLES[key]:
+            a.flags.writeable = False
+    return _LENS_TABLES[key]
+
+
+def _build_lens_table(K, dist, width, height):
+    # the panel's border (half a pixel out), undistorted: the table's extent
+    e = np.linspace(-0.5, width - 0.5, max(8, width // 4))
+    f = np.linspace(-0.5, height - 0.5, max(8, height // 4))
+    border = np.concatenate([
+        np.column_stack([e, np.full_like(e, f[0])]), np.column_stack([e, np.full_like(e, f[-1])]),
+        np.column_stack([np.full_like(f, e[0]), f]), np.column_stack([np.full_like(f, e[-1]), f]),
+    ])  # fmt: skip
+    und = opencv_undistort(K, dist, border)
+    lo = und.min(axis=0)
+    hi = und.max(axis=0)
+    rng = np.random.default_rng(0)
+    step_px = 8.0
+    while True:
+        step = step_px / K[0, 0]
+        x0, y0 = lo - 3 * step
+        nx = int(np.ceil((hi[0] - x0) / step)) + 4
+        ny = int(np.ceil((hi[1] - y0) / step)) + 4
+        gx, gy = np.meshgrid(x0 + step * np.arange(nx), y0 + step * np.arange(ny))
+        table = opencv_distort(dist, np.column_stack([gx.ravel(), gy.ravel()])).ravel()
+        header = np.array([x0, y0, 1.0 / step, nx, ny])
+        # check at random points of the panel's extent, in projector pixels (in
+        # Python: compiling a kernel for this would cost a cold start a second)
+        probe = lo + (hi - lo) * rng.uniform(0, 1, (2000, 2))
+        ours = np.array([_lens_lookup.py_func(header, table, x, y) for x, y in probe])
+        err = np.abs((ours - opencv_distort(dist, probe)) * [K[0, 0], K[1, 1]]).max()
+        if err <= LENS_TABLE_TOL or step_px <= 0.5:
+            return header, table
+        step_px /= 2
+
+
+def pack_projector(R, t, K, dist, width: int, height: int) -> np.ndarray:
+    """The renderer's numbers for one projector, from the rig's own numbers.
+
+    ``R`` (9), ``t`` (3), fx, skew, cx, fy, cy, the lens table's header (5),
+    padding to :data:`PROJ_HEADER`, then the table (see :func:`lens_table`).
+    """
+    K = np.asarray(K, np.float64)
+    header, table = lens_table(K, dist, width, height)
+    out = np.zeros(PROJ_HEADER + table.size)
+    out[:9] = np.asarray(R, np.float64).ravel()
+    out[9:12] = np.asarray(t, np.float64).ravel()
+    out[12:17] = [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
+    out[17:22] = header
+    out[PROJ_HEADER:] = table
+    return out
+
+
+@nb.njit(cache=True)
+def _lens_lookup(lens, table, xn, yn):
+    """Distorted ``(x, y)`` of undistorted normalised ``(xn, yn)`` from a lens table.
+
+    ``lens`` = ``[x0, y0, 1 / step, nx, ny]``; NaN outside the table.
+    Catmull-Rom interpolation over the 4 x 4 nearest nodes.
+    """
+    nx = int(lens[3])
+    ny = int(lens[4])
+    if ny == 0:
+        return xn, yn
+    gx = (xn - lens[0]) * lens[2]
+    gy = (yn - lens[1]) * lens[2]
+    if not (gx >= 1.0 and gx < nx - 2.0 and gy >= 1.0 and gy < ny - 2.0):
+        return np.nan, np.nan
+    ix = int(gx)
+    iy = int(gy)
+    fx = gx - ix
+    fy = gy - iy
+    wx0 = fx * (-0.5 + fx * (1.0 - 0.5 * fx))
+    wx1 = 1.0 + fx * fx * (-2.5 + 1.5 * fx)
+    wx2 = fx * (0.5 + fx * (2.0 - 1.5 * fx))
+    wx3 = fx * fx * (-0.5 + 0.5 * fx)
+    xd = 0.0
+    yd = 0.0
+    for a in range(4):
+        wy = fy * (-0.5 + fy * (1.0 - 0.5 * fy))
+        if a == 1:
+            wy = 1.0 + fy * fy * (-2.5 + 1.5 * fy)
+        elif a == 2:
+            wy = fy * (0.5 + fy * (2.0 - 1.5 * fy))
+        elif a == 3:
+            wy = fy * fy * (-0.5 + 0.5 * fy)
+        k = 2 * ((iy - 1 + a) * nx + ix - 1)
+        xd += wy * (wx0 * table[k] + wx1 * table[k + 2] + wx2 * table[k + 4] + wx3 * table[k + 6])
+        yd += wy * (
+            wx0 * table[k + 1] + wx1 * table[k + 3] + wx2 * table[k + 5] + wx3 * table[k + 7]
+        )
+    return xd, yd
+
+
 @nb.njit(cache=True)
 def _project_u(pp, X, Y, Z):
-    """Projector pixel (u, v) of a camera-frame point; pp as depth_model._projector_params."""
+    """Projector pixel (u, v) of a camera-frame point; ``pp`` from :func:`pack_projector`."""
     px = pp[0] * X + pp[1] * Y + pp[2] * Z + pp[9]
     py = pp[3] * X + pp[4] * Y + pp[5] * Z + pp[10]
     pz = pp[6] * X + pp[7] * Y + pp[8] * Z + pp[11]
     if pz <= 1e-9:
         return np.nan, np.nan
-    xn = px / pz
-    yn = py / pz
-    k1, k2, p1, p2, k3, k4, k5, k6 = pp[17], pp[18], pp[19], pp[20], pp[21], pp[22], pp[23], pp[24]
-    r2 = xn * xn + yn * yn
-    rad = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = xn * rad + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn) + pp[25] * r2 + pp[26] * r2 * r2
-    yd = yn * rad + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn + pp[27] * r2 + pp[28] * r2 * r2
+    xd, yd = _lens_lookup(pp[17:22], pp[PROJ_HEADER:], px / pz, py / pz)
     return pp[12] * xd + pp[13] * yd + pp[14], pp[15] * yd + pp[16]
 
 
@@ -713,7 +881,8 @@ def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
 def project_to_projector(pp, points):
     """Projector pixels ``(n, 2)`` of camera-frame ``points`` ``(n, 3)`` with the kernel's model.
 
-    ``pp`` is one row of :func:`lightflow.drivers.synthetic.pack_projectors`.
+    ``pp`` is one row of :func:`lightflow.drivers.synthetic.pack_projectors`
+    (:func:`pack_projector`).
     """
     out = np.empty((points.shape[0], 2))
     for i in range(points.shape[0]):

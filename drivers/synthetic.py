@@ -23,6 +23,8 @@ from .base import Camera, Frame
 from .render import (
     KNOTS,
     knot_states,
+    opencv_undistort,
+    pack_projector,
     render_exposure,
     render_exposure_fast,
     render_truth,
@@ -31,9 +33,10 @@ from .render import (
 from .scenes import Scene, get_scene, newspaper_texture
 
 # The simulator is a reference for the reconstruction, so it shares none of its
-# geometry code: camera rays come from OpenCV's own undistortPoints, patterns
-# are rasterised here from the format's definition, and projector parameters
-# are packed here from the rig's numbers.  An error on either side then shows.
+# geometry code: camera rays come from OpenCV's own undistortPoints, projector
+# pixels from a table of OpenCV's projectPoints (render.pack_projector, from the
+# rig's numbers), and patterns are rasterised here from the format's definition.
+# An error on either side then shows.
 
 
 _RAYS: dict[bytes, np.ndarray] = {}
@@ -56,9 +59,7 @@ def camera_rays_cv(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> 
 
 def _undistorted_rays(K, dist, width, height):
     x, y = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    pix = np.stack([x.ravel(), y.ravel()], axis=1).reshape(-1, 1, 2)
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    xy = cv2.undistortPointsIter(pix, K, np.asarray(dist, np.float64), None, None, crit)
+    xy = opencv_undistort(K, dist, np.stack([x.ravel(), y.ravel()], axis=1))
     xy = xy.reshape(height, width, 2)
     return np.concatenate([xy, np.ones((height, width, 1))], axis=2)
 
@@ -119,15 +120,11 @@ def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
 
 
 def pack_projectors(rig: Rig) -> np.ndarray:
-    """Per projector the renderer's 29 numbers: R (9), t (3), fx, skew, cx, fy, cy, dist (12)."""
-    out = np.zeros((len(rig.projectors), 29))
-    for i, p in enumerate(rig.projectors):
-        K = np.asarray(p.K, np.float64)
-        out[i, :9] = np.asarray(p.R, np.float64).ravel()
-        out[i, 9:12] = np.asarray(p.t, np.float64).ravel()
-        out[i, 12:17] = [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]
-        d = np.asarray(p.dist, np.float64).ravel()[:12]
-        out[i, 17 : 17 + d.size] = d
+    """Per projector a row of :func:`lightflow.drivers.render.pack_projector` (zero-padded)."""
+    rows = [pack_projector(p.R, p.t, p.K, p.dist, p.width, p.height) for p in rig.projectors]
+    out = np.zeros((len(rows), max(len(r) for r in rows)))
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
     return out
 
 
