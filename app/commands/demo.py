@@ -34,8 +34,8 @@ the median error against the ground truth and the coverage: of the pixels on
 a moving object that every projector lights, the share that got a depth (the
 one definition used by `lightflow eval` and Rerun's green series; the status
 line's "depth on image" is the share of all camera pixels).  With the
-defaults: 36 of 36 frames with depth, median error 13.2 mm (90th percentile
-47.4 mm), coverage 65 % (left board 76 %, right board 49 %).
+defaults: 36 of 36 frames with depth, median error 13.3 mm (90th percentile
+47.1 mm), coverage 65 % (left board 76 %, right board 50 %).
 
 The colour leak between the red and blue pattern channels is the simulated
 camera's (0.035); --crosstalk auto estimates it from the frames, as capture
@@ -50,7 +50,7 @@ $XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
 the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches):
 first depth picture after 24 s and the whole demo in 58 s when the other jobs
 left it nearly two cores (46 s of CPU time to the first depth picture), 45-53 s
-and 104-115 s at a load average of 2-4 from other jobs; warm caches, 3.6 s and
+and 100-115 s at a load average of 2-4 from other jobs; warm caches, 3.6 s and
 45 s.  Rendering is the bound while streaming (about 1.5 s of CPU time per
 frame); the first and last lines give the times and the CPU time of the run."""
 
