@@ -296,8 +296,9 @@ class Helper:
         "print('renderer', flush=True)\n"
     )
 
-    def __init__(self, argv: list[str], since):
+    def __init__(self, argv: list[str], since, on_renderer=None):
         self.since = since
+        self.on_renderer = on_renderer
         self.sliding_mid = threading.Event()
         self.renderer = threading.Event()
         self.tables = threading.Event()
@@ -316,6 +317,8 @@ class Helper:
             elif step == "renderer":
                 print(f"\n      helper: renderer kernels ready after {self.since()}", flush=True)
                 self.renderer.set()
+                if self.on_renderer is not None:
+                    self.on_renderer()
             elif step == "tables":
                 print(f"\n      helper: band profile tables ready after {self.since()}",
                       flush=True)  # fmt: skip
@@ -325,6 +328,8 @@ class Helper:
         # wake whoever waits: a failed helper leaves its steps to this process
         for step in (self.sliding_mid, self.renderer, self.tables):
             step.set()
+        if self.on_renderer is not None:
+            self.on_renderer()
 
     @property
     def failed(self) -> bool:
@@ -351,11 +356,13 @@ class Helper:
             pass
 
 
-def render_ahead(camera, helper: Helper | None, done: threading.Event, failed: list) -> None:
+def render_ahead(camera, helper: Helper | None, wake: threading.Event, done: threading.Event,
+                 failed: list) -> None:  # fmt: skip
     """Render frames ahead on one idle-priority thread until ``done`` is set or the scene ends.
 
-    Waits for the helper first (it compiles the renderer's kernels into
-    numba's cache, and this process is busy compiling the pipeline's).  The
+    With a helper, waits for ``wake`` first: set when the helper has compiled
+    the renderer's kernels into numba's cache (this process is busy compiling
+    the pipeline's) or has ended, and with ``done``.  The
     thread runs at the lowest priority: it uses a core that compilation
     leaves idle and must not slow the compilation down.  An exception is
     appended to ``failed`` for the caller to raise.
@@ -363,8 +370,8 @@ def render_ahead(camera, helper: Helper | None, done: threading.Event, failed: l
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)  # this thread only
         if helper is not None:
-            helper.renderer.wait()
-            if helper.failed:
+            wake.wait()
+            if done.is_set() or helper.failed:
                 return  # the main thread compiles the renderer after the pipeline
         while not done.is_set() and camera.render_ahead(1, threads=1):
             pass
@@ -519,18 +526,20 @@ def run(args: argparse.Namespace) -> int:
     # profile tables) while the helper compiles the renderer.  Frames are rendered
     # ahead on whatever core is left idle.
     helper = None
+    done = threading.Event()  # stops the rendering ahead
+    wake = threading.Event()  # the renderer's kernels are cached, or stop waiting for them
     need_tables = not tables_path().exists()
     if need_tables or not in_numba_cache(render, "render_exposure_fast", "knot_states"):
         print("[1/4] helper process: half of the band detector's kernels, the band profile tables "
               "(what the band detector reports for every sweep, line width and blur), then the "
               "renderer's kernels; once per machine ...", flush=True)  # fmt: skip
-        helper = Helper([str(args.rig), scene.name, "wait" if need_tables else "go"], since)
+        helper = Helper([str(args.rig), scene.name, "wait" if need_tables else "go"], since,
+                        on_renderer=wake.set)  # fmt: skip
     else:
         print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
     camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
-    done = threading.Event()
     failed: list[BaseException] = []
-    ahead = threading.Thread(target=render_ahead, args=(camera, helper, done, failed),
+    ahead = threading.Thread(target=render_ahead, args=(camera, helper, wake, done, failed),
                              name="render-ahead")  # fmt: skip
     try:
         ahead.start()
@@ -568,6 +577,7 @@ def run(args: argparse.Namespace) -> int:
                 pipeline.warm_up()
             finally:
                 done.set()
+                wake.set()
                 ahead.join()
         if failed:
             raise failed[0]
@@ -575,12 +585,16 @@ def run(args: argparse.Namespace) -> int:
         n = camera.frames_ahead
         print("      renderer: " + (f"{n} frame{'s' if n > 1 else ''} rendered meanwhile" if n
               else "the first frame ..."), flush=True)  # fmt: skip
+        if helper is not None and not helper.renderer.is_set():
+            print("      (the helper is still compiling the renderer's kernels)", flush=True)
+            helper.renderer.wait()  # set also when it ends: then this process compiles them
         if not camera.frames_ahead:
             with CompileProgress("      renderer") as compiling:
                 camera.render_ahead(1)
             print(f"      {compiling.summary()}; frame 1 rendered after {since()}", flush=True)
     except BaseException:
         done.set()
+        wake.set()
         if ahead.is_alive():
             ahead.join()
         camera.close()
