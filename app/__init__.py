@@ -26,8 +26,8 @@ def _key_numba_cache() -> None:
     root = Path(__file__).resolve().parent
     digest = hashlib.sha256()
     for folder in (root, root.parent / "drivers"):
-        for path in sorted(folder.glob("*.py")):
-            digest.update(path.name.encode())
+        for path in sorted(folder.rglob("*.py")):
+            digest.update(str(path.relative_to(folder)).encode())
             digest.update(path.read_bytes())
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lightflow"
     os.environ["NUMBA_CACHE_DIR"] = str(cache / f"numba-{digest.hexdigest()[:16]}")

@@ -40,10 +40,10 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError, FrameError, LightflowError
-from lightflow.app.pipeline import DepthPipeline, PipelineConfig
+from lightflow.app.core.errors import ConfigError, FrameError, LightflowError
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+from lightflow.app.core.rig import Rig
 from lightflow.app.recording import load_frame, read_recording
-from lightflow.app.rig import Rig
 
 #: bump when the outputs of a chunk change meaning (invalidates resumable state)
 BATCH_FORMAT = "lightflow-batch/1"
@@ -172,7 +172,7 @@ def chunk_task(
     first chunk), write their outputs, then the marker."""
     if hook is not None:
         hook(rec, indices)
-    from lightflow.app.results import RunStats
+    from lightflow.app.core.results import RunStats
     from lightflow.app.sinks.depth_export import DepthExportSink
     from lightflow.app.sinks.ply import PlyExportSink
 
@@ -531,7 +531,7 @@ def run_batch(
 def prebuild_luts(jobs: Sequence[RecordingJob], options: BatchOptions) -> None:
     """Build each rig's LUT once here, on every core, into the on-disk cache that local
     workers then load (instead of each worker building it on one core)."""
-    from lightflow.app.depth_model import load_or_build_lut
+    from lightflow.app.core.depth_model import load_or_build_lut
     from lightflow.app.status import Progress
 
     rigs = {}

@@ -16,7 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from lightflow.app.batch import BatchOptions, BatchReport, run_batch, worker_pipeline
-from lightflow.app.depth_model import load_or_build_lut
+from lightflow.app.core.depth_model import load_or_build_lut
 from lightflow.app.recording import load_frame, read_recording
 from lightflow.drivers.base import Frame
 

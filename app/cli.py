@@ -1,6 +1,6 @@
 """The ``lightflow`` command line.
 
-User errors (:class:`~lightflow.app.errors.LightflowError`) are printed as one
+User errors (:class:`~lightflow.app.core.errors.LightflowError`) are printed as one
 line, ``lightflow: error: ...``, with exit status 2 and no traceback.
 """
 
@@ -12,7 +12,7 @@ import pkgutil
 import sys
 
 from lightflow.app import commands
-from lightflow.app.errors import LightflowError
+from lightflow.app.core.errors import LightflowError
 
 DESCRIPTION = """\
 Depth of fast-moving objects from the motion blur of projected line patterns

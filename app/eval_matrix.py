@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightflow.app.rig import Rig, resolve_rig, rig_from_dict
+from lightflow.app.core.rig import Rig, resolve_rig, rig_from_dict
 
 #: generator seeds of rigs that were looked at while developing (never reported)
 TUNING_SEEDS = (1, 2)
@@ -140,10 +140,10 @@ def renderer_version() -> str:
     """A hash of the simulator's source: recordings of another renderer are rendered anew."""
     import hashlib
 
-    drivers = Path(__file__).resolve().parent.parent / "drivers"
+    sim = Path(__file__).resolve().parent.parent / "drivers" / "sim"
     digest = hashlib.sha256()
     for name in ("render.py", "scenes.py", "synthetic.py"):
-        path = drivers / name
+        path = sim / name
         if path.is_file():
             digest.update(path.read_bytes())
     return digest.hexdigest()[:16]

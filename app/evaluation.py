@@ -1,10 +1,10 @@
 """Accuracy of the depth pipeline against the ground truth of simulated recordings.
 
 A simulated recording (``lightflow simulate``) holds, beside its frames,
-``ground_truth/<frame stem>.npz`` (a :class:`~lightflow.drivers.synthetic.GroundTruth`)
+``ground_truth/<frame stem>.npz`` (a :class:`~lightflow.drivers.sim.synthetic.GroundTruth`)
 and ``ground_truth/scene.json``.  The metrics are pure numpy functions of a
 depth map and its ground truth; :func:`evaluate_recording` replays a
-recording through :class:`~lightflow.app.pipeline.DepthPipeline` and pools them.
+recording through :class:`~lightflow.app.core.pipeline.DepthPipeline` and pools them.
 
 Metrics
 -------
@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError
-from lightflow.app.rig import Rig
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import Rig
 
 TRUTH_DIR = "ground_truth"
 SCENE_JSON = "scene.json"
@@ -74,7 +74,7 @@ class FrameMetrics:
         Depth pixels on the object with a predicted standard deviation, and how
         many of them are within one and two of it of the truth.
     target_causes : tuple of int
-        Per :mod:`lightflow.app.causes` code, the target pixels (moving, lit by
+        Per :mod:`lightflow.app.core.causes` code, the target pixels (moving, lit by
         every projector) that got it: ``[0]`` those with a depth, the rest why not.
     errors : numpy.ndarray
         The per-pixel signed errors (estimate - truth, float32), for pooling over frames.
@@ -229,7 +229,7 @@ def evaluate_frame(
     truth : GroundTruth
         ``depth``, ``object_id``, ``lit`` and ``planar`` of the same frame.
     rays : numpy.ndarray, optional
-        ``(H, W, 3)`` camera rays with z = 1 (:func:`lightflow.app.geometry.camera_rays`);
+        ``(H, W, 3)`` camera rays with z = 1 (:func:`lightflow.app.core.geometry.camera_rays`);
         needed for the plane RMSE of planar scenes.
     n_projectors : int, optional
         Number of projectors of the rig; inferred from ``truth.lit`` when omitted.
@@ -278,7 +278,7 @@ def evaluate_frame(
         n2 = int(np.count_nonzero(err <= 2.0 * sd[has]))
     target_causes: tuple = ()
     if causes_grid is not None:
-        from lightflow.app.causes import count_causes
+        from lightflow.app.core.causes import count_causes
 
         ys, xs = np.nonzero(target)
         gh, gw = causes_grid.shape
@@ -343,7 +343,7 @@ def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
 
 def _sigma_and_causes(per_frame: list[FrameMetrics], n_target: int) -> dict:
     """Shares within 1 and 2 predicted sigma; shares of the target pixels by cause."""
-    from lightflow.app.causes import CAUSE_NAMES
+    from lightflow.app.core.causes import CAUSE_NAMES
 
     n_sigma = sum(m.n_sigma for m in per_frame)
     out = {
@@ -384,7 +384,7 @@ def require_truth(rec_path: str | Path) -> Path:
 
 def read_scene_info(rec_path: str | Path) -> dict:
     """``ground_truth/scene.json`` of a simulated recording ({} when absent)."""
-    from lightflow.app.rig import read_json
+    from lightflow.app.core.rig import read_json
 
     path = truth_dir(rec_path) / SCENE_JSON
     if not path.is_file():
@@ -425,11 +425,11 @@ def evaluate_recording(
         When the recording has no ground truth or a frame's ground truth is
         missing or of the wrong size.
     """
-    from lightflow.app.geometry import camera_rays
-    from lightflow.app.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.core.geometry import camera_rays
+    from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
     from lightflow.app.recording import load_frame, read_recording
     from lightflow.drivers.base import Frame
-    from lightflow.drivers.synthetic import GroundTruth
+    from lightflow.drivers.sim.synthetic import GroundTruth
 
     rec = read_recording(rec_path, rig)
     tdir = require_truth(rec_path)
@@ -467,8 +467,8 @@ def evaluate_recording(
                 flows = st.TrueFlows.load(fpath)
             else:
                 if renderer is None:
-                    from lightflow.drivers.scenes import get_scene
-                    from lightflow.drivers.synthetic import SceneRenderer
+                    from lightflow.drivers.sim.scenes import get_scene
+                    from lightflow.drivers.sim.synthetic import SceneRenderer
 
                     renderer = SceneRenderer(rec.rig, get_scene(str(info.get("scene", "?"))))
                 flows = st.true_flows(rec.rig, "", entry.t, rec.exposure_s, renderer)

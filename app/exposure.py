@@ -6,7 +6,7 @@ neighbouring bands overlap and can no longer be measured.  The band length
 exposure, so the exposure is scaled multiplicatively until the longest bands
 are long but clearly shorter than the line interval.
 
-What is measured (from :class:`~lightflow.app.results.BandSet` only): in each
+What is measured (from :class:`~lightflow.app.core.results.BandSet` only): in each
 image row the bands of one pattern are sorted by position; for each pair of
 neighbours the *fraction* is their mean length over the distance between
 their centres (the local line interval in camera pixels).  The statistic is
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError
-from lightflow.app.results import BandSet, FrameResult
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.results import BandSet, FrameResult
 
 PERCENTILE = 90.0
 

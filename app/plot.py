@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
 
 #: a colour-blind-safe cycle (Okabe-Ito), BGR like the images
 COLOURS = (

@@ -27,8 +27,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.rig import Rig, read_json, rig_from_dict, short_json, short_key
+from lightflow.app.core.errors import ConfigError, FrameError
+from lightflow.app.core.rig import Rig, read_json, rig_from_dict, short_json, short_key
 from lightflow.drivers.base import Frame
 
 RECORDING_FORMAT = "lightflow-recording/1"
@@ -582,7 +582,7 @@ def benchmark_recorder(
         ``offered``, ``written``, ``dropped``, ``fps`` (written per second of
         wall time including the final drain), ``mib_per_s`` and ``mib_per_frame``.
     """
-    from lightflow.app.rig import CameraModel, ProjectorModel
+    from lightflow.app.core.rig import CameraModel, ProjectorModel
 
     rig = _bench_rig(width, height, CameraModel, ProjectorModel)
     images = [synthetic_test_image(width, height, seed) for seed in range(4)]
@@ -622,7 +622,7 @@ def benchmark_recorder(
 
 
 def _bench_rig(width, height, CameraModel, ProjectorModel) -> Rig:
-    from lightflow.app.rig import Pattern
+    from lightflow.app.core.rig import Pattern
 
     f = 1.1 * width
     K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])

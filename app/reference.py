@@ -21,7 +21,7 @@ NumPy, one image row at a time, in plain Python loops over rows.
 - Flow in line-index units ``dr / B``, interpolated linearly between band
   centres onto the grid columns (not across gaps wider than 1.6 intervals).
 - ``log(flow_1 / flow_2)``, smoothed by a masked Gaussian, gives depth
-  through the same depth table (:class:`~lightflow.app.depth_model.DepthLUT`)
+  through the same depth table (:class:`~lightflow.app.core.depth_model.DepthLUT`)
   that the pipeline uses, interpolated linearly; the grid is resized
   bilinearly to the camera's size.
 
@@ -38,10 +38,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .depth_model import DepthLUT, DepthRange, load_or_build_lut
-from .errors import ConfigError
+from .core.depth_model import DepthLUT, DepthRange, load_or_build_lut
+from .core.errors import ConfigError
+from .core.rig import CHANNEL_INDEX, Rig
 from .recording import load_frame, read_recording
-from .rig import CHANNEL_INDEX, Rig
 
 
 def row_flows(

@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .depth_model import FORWARD_SAMPLES, DepthRange, h_function
-from .errors import ConfigError
-from .geometry import camera_rays, pixel_grid, project_to_projector, undistort_pixels
-from .patterns import local_pitch
-from .rig import Rig
+from .core.depth_model import FORWARD_SAMPLES, DepthRange, h_function
+from .core.errors import ConfigError
+from .core.geometry import camera_rays, pixel_grid, project_to_projector, undistort_pixels
+from .core.patterns import local_pitch
+from .core.rig import Rig
 
 #: the paper's sub-pixel precision of band lengths and intervals
 SUBPIXEL_PX = 0.25

@@ -11,7 +11,7 @@ counts the drop; in lossless mode (offline replay and evaluation) a full
 queue blocks the producer instead, so no frame is ever lost.
 
 Errors: the first exception of any worker is stored and re-raised from
-:meth:`Runner.join` unchanged (a :class:`~lightflow.app.errors.LightflowError`
+:meth:`Runner.join` unchanged (a :class:`~lightflow.app.core.errors.LightflowError`
 stays a one-line message).  Whatever fails, the sink thread writes what
 already reached it and closes every sink exactly once, so a recording of a
 camera that was unplugged mid-stream stays complete and replayable.
@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from lightflow.app.results import FrameResult, RunStats
+from lightflow.app.core.results import FrameResult, RunStats
 from lightflow.app.sinks.background import BackgroundSink
 from lightflow.app.status import CAUSE_PREFIX
 
@@ -113,7 +113,7 @@ class Runner:
         size and exposure first).  Only the capture thread iterates it.
     pipeline : object
         Anything with ``process(frame) -> FrameResult`` (a
-        :class:`~lightflow.app.pipeline.DepthPipeline`).  Only the processing
+        :class:`~lightflow.app.core.pipeline.DepthPipeline`).  Only the processing
         thread calls it.
     sinks : iterable of Sink
         Written in order, one ``write(result, stats)`` per result; closed
@@ -450,7 +450,7 @@ def _count_causes(extra: dict, result) -> None:
     """Add one frame's pixels per cause (and its colour-leak state) to the run's stats."""
     if result.cause_counts is None:
         return
-    from .causes import CAUSE_NAMES
+    from .core.causes import CAUSE_NAMES
 
     for name, n in zip(CAUSE_NAMES, result.cause_counts, strict=True):
         key = CAUSE_PREFIX + name

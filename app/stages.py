@@ -21,9 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import ConfigError
-from .patterns import local_pitch
-from .rig import Rig
+from .core.errors import ConfigError
+from .core.patterns import local_pitch
+from .core.rig import Rig
 
 #: file of the true flows of a frame, beside its ground truth
 FLOWS_SUFFIX = "_flows.npz"
@@ -156,14 +156,14 @@ def true_flows(rig: Rig, scene: str, t0: float, exposure_s: float, renderer=None
     ----------
     rig : Rig
     scene : str
-        Built-in scene name (:mod:`lightflow.drivers.scenes`).
+        Built-in scene name (:mod:`lightflow.drivers.sim.scenes`).
     t0, exposure_s : float
         Start and length of the exposure (s).
     renderer : SceneRenderer, optional
         Reused between frames when given.
     """
-    from lightflow.drivers.scenes import get_scene
-    from lightflow.drivers.synthetic import SceneRenderer
+    from lightflow.drivers.sim.scenes import get_scene
+    from lightflow.drivers.sim.synthetic import SceneRenderer
 
     r = renderer or SceneRenderer(rig, get_scene(scene))
     return flows_from_truth(rig, r.truth(t0), r.truth(t0 + 0.5 * exposure_s),
@@ -254,7 +254,7 @@ def summarise(per_frame: list[dict]) -> dict:
 
     out = {"n": n, "log_ratio": med(pooled["log_ratio"]), "depth_mm": 1e3 * med(pooled["depth"])}
     # why the moving pixels without depth got none, and how far their lines moved
-    from .causes import CAUSES
+    from .core.causes import CAUSES
 
     missed = {}
     for code in np.unique(pooled["missed_cause"]):

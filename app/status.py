@@ -24,7 +24,7 @@ import time
 from collections.abc import Iterable
 from typing import TextIO
 
-from lightflow.app.results import RunStats
+from lightflow.app.core.results import RunStats
 
 TTY_INTERVAL_S = 0.2
 LOG_INTERVAL_S = 5.0
@@ -85,7 +85,7 @@ def format_summary(
         )
     causes = no_depth_counts(stats.extra)
     if causes is not None and causes.sum():
-        from .causes import describe_counts
+        from .core.causes import describe_counts
 
         lines.append(
             f"no depth, by cause (share of all analysis-grid pixels, whole run): "
@@ -113,7 +113,7 @@ def no_depth_counts(extra: dict):
     """Grid pixels per cause code summed over a run (``None`` before the first frame)."""
     import numpy as np
 
-    from .causes import CAUSE_NAMES
+    from .core.causes import CAUSE_NAMES
 
     if CAUSE_PREFIX + CAUSE_NAMES[0] not in extra:
         return None

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightflow.app.errors import CalibrationError
+from lightflow.app.core.errors import CalibrationError
 
 
 @dataclass(frozen=True)
@@ -147,8 +147,8 @@ def measure_ramps(root: str | Path) -> dict[str, Response | str] | None:
     ConfigError
         A malformed ``ramp.json`` (names the field).
     """
-    from lightflow.app.errors import ConfigError, FrameError
-    from lightflow.app.rig import read_json
+    from lightflow.app.core.errors import ConfigError, FrameError
+    from lightflow.app.core.rig import read_json
 
     from .session import load_grey
 

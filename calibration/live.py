@@ -34,7 +34,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from lightflow.app.errors import DriverError
+from lightflow.app.core.errors import DriverError
 from lightflow.drivers.base import Camera
 
 from .corners import find_board_corners

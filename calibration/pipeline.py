@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lightflow.app.errors import CalibrationError, ConfigError
-from lightflow.app.rig import CameraModel, ProjectorModel, Rig, rig_from_dict
+from lightflow.app.core.errors import CalibrationError, ConfigError
+from lightflow.app.core.rig import CameraModel, ProjectorModel, Rig, rig_from_dict
 
 from .corners import corners_to_projector, find_board_corners, window_size
 from .gamma import measure_ramps

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from lightflow.app.rig import Rig
+from lightflow.app.core.rig import Rig
 
 from .gamma import Response, gamma_lines
 

@@ -3,8 +3,8 @@
 A session is ``CAL/session.json`` plus, for every pose of the board and every
 projector, the camera frames of the ``graycode/1`` sequence.  Reading is strict:
 unknown keys, a wrong sequence name, wrong frame counts, missing files and
-frames of the wrong size are :class:`~lightflow.app.errors.ConfigError` /
-:class:`~lightflow.app.errors.FrameError` naming the pose, projector and frame.
+frames of the wrong size are :class:`~lightflow.app.core.errors.ConfigError` /
+:class:`~lightflow.app.core.errors.FrameError` naming the pose, projector and frame.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lightflow.app.errors import ConfigError, FrameError
-from lightflow.app.rig import Pattern, _Reader, parse_pattern, read_json
+from lightflow.app.core.errors import ConfigError, FrameError
+from lightflow.app.core.rig import FieldReader, Pattern, parse_pattern, read_json
 
 from .graycode import SEQUENCE, frame_count, frame_labels
 
@@ -191,7 +191,7 @@ def load_grey(path: Path, what: str, size: tuple[int, int] | None = None) -> np.
     return img.astype(np.float32) * np.float32(scale)
 
 
-def _parse_board(rd: _Reader, d: Any) -> Board:
+def _parse_board(rd: FieldReader, d: Any) -> Board:
     rd.obj(d, "board", {"kind", "inner_corners", "square_m"})
     rd.string(d["kind"], "board.kind", ("checkerboard",))
     ic = d["inner_corners"]
@@ -202,7 +202,7 @@ def _parse_board(rd: _Reader, d: Any) -> Board:
     return Board(cols, rows, rd.number(d["square_m"], "board.square_m", positive=True))
 
 
-def _parse_projectors(rd: _Reader, projs: Any) -> tuple[ProjectorSpec, ...]:
+def _parse_projectors(rd: FieldReader, projs: Any) -> tuple[ProjectorSpec, ...]:
     if not isinstance(projs, list) or len(projs) not in (1, 2):
         raise rd.fail("projectors", "expected a list of one or two projectors")
     out = []
@@ -232,7 +232,7 @@ def _parse_projectors(rd: _Reader, projs: Any) -> tuple[ProjectorSpec, ...]:
     return tuple(out)
 
 
-def _parse_poses(rd: _Reader, poses: Any, projectors: tuple[ProjectorSpec, ...]):
+def _parse_poses(rd: FieldReader, poses: Any, projectors: tuple[ProjectorSpec, ...]):
     if not isinstance(poses, list) or not poses:
         raise rd.fail("poses", "expected a non-empty list of poses")
     out = []
@@ -276,7 +276,7 @@ def _parse_poses(rd: _Reader, poses: Any, projectors: tuple[ProjectorSpec, ...])
 
 def session_from_dict(data: Any, root: Path, source: str) -> Session:
     """Validate a parsed ``session.json`` object (see :func:`read_session`)."""
-    rd = _Reader(source)
+    rd = FieldReader(source)
     rd.obj(data, "session", {"format", "board", "camera", "projectors", "sequence", "poses"})
     if data["format"] != SESSION_FORMAT:
         raise rd.fail("format", f"expected {SESSION_FORMAT!r}, got {data['format']!r}")

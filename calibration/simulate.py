@@ -26,8 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lightflow.app.geometry import project_points, project_to_projector, undistort_pixels
-from lightflow.app.rig import CameraModel, ProjectorModel, Rig
+from lightflow.app.core.geometry import project_points, project_to_projector, undistort_pixels
+from lightflow.app.core.rig import CameraModel, ProjectorModel, Rig
 
 from .gamma import DEFAULT_LEVELS, ramp_frame_path, write_ramp_index
 from .graycode import frame_count, graycode_images

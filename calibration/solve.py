@@ -241,7 +241,7 @@ def joint_refine(
     from scipy.optimize import least_squares
     from scipy.sparse import lil_matrix
 
-    from lightflow.app.geometry import project_points
+    from lightflow.app.core.geometry import project_points
 
     obj = np.asarray(object_points, float)
     n = len(obj)

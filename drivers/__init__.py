@@ -1,5 +1,6 @@
-"""Cameras and pattern outputs; :func:`open_camera` opens a camera from its URI."""
+"""Hardware cameras (Aravis, V4L2) and pattern output (projector windows).
 
-from lightflow.drivers.uri import open_camera
-
-__all__ = ["open_camera"]
+The device interfaces are in :mod:`lightflow.drivers.base`; the simulator is
+:mod:`lightflow.drivers.sim`.  :func:`lightflow.app.cameras.open_camera` opens
+any camera from its URI.
+"""

@@ -17,7 +17,7 @@ Lost cameras: when no buffer arrives for ``lost_after_s`` seconds the driver
 asks the control channel directly (an uncached register read); if that fails
 or gets no answer within ``probe_timeout_s``,
 or Aravis has signalled ``control-lost`` (heartbeat failure), ``frames()``
-raises :class:`~lightflow.app.errors.DeviceLostError`.  Aravis alone would
+raises :class:`~lightflow.app.core.errors.DeviceLostError`.  Aravis alone would
 take much longer: a GigE Vision transaction to a dead camera fails only after
 5 tries of 500 ms (2.5 s), and its heartbeat thread retries for 5 s before it
 signals ``control-lost``; so the loss is reported after about
@@ -31,7 +31,7 @@ Aravis opens such a camera without control (``arv_gv_device_take_control``
 failed, ``arv_gv_device_is_controller`` is false) and every write is refused.
 :meth:`AravisCamera.open` then says so on one line and retries
 ``take_control`` until ``control_wait_s`` has passed, then raises a one-line
-:class:`~lightflow.app.errors.DriverError`.
+:class:`~lightflow.app.core.errors.DriverError`.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lightflow.app.errors import DeviceLostError, DriverError
+from lightflow.app.core.errors import DeviceLostError, DriverError
 from lightflow.drivers.base import Camera, Frame, FrameHandoff
 from lightflow.drivers.pixfmt import packed_row_bytes, packing, significant_bits, unpack
 

@@ -14,54 +14,8 @@ import abc
 import collections
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass, field
-from typing import Any
 
-import numpy as np
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One exposure from a camera.
-
-    Attributes
-    ----------
-    index : int
-        Sequence number given by the camera.  A gap between consecutive
-        indices means the camera (or the transport) lost frames.
-    timestamp : float
-        Start of the exposure in seconds (camera clock, or recording time).
-    exposure_s : float
-        Exposure length in seconds.
-    image : numpy.ndarray
-        ``(height, width, 3)`` RGB image, ``uint8`` or ``uint16``.
-    name : str
-        Stem used for exported files (``000012``).
-    extras : dict
-        Driver-specific data, e.g. ``{"truth": GroundTruth}`` from the synthetic camera.
-    bits : int, optional
-        Significant bits per sample (a 12-bit camera gives ``uint16`` values
-        0..4095: full scale is ``2**bits - 1``).  None: the dtype's full range.
-    """
-
-    index: int
-    timestamp: float
-    exposure_s: float
-    image: np.ndarray
-    name: str = ""
-    extras: dict[str, Any] = field(default_factory=dict)
-    bits: int | None = None
-
-    @property
-    def stem(self) -> str:
-        return self.name or f"{self.index:06d}"
-
-    @property
-    def full_scale(self) -> float:
-        """The sample value of full exposure: ``2**bits - 1``, or the dtype's maximum."""
-        if self.bits:
-            return float(2**self.bits - 1)
-        return 65535.0 if self.image.dtype == np.uint16 else 255.0
+from lightflow.app.core.frame import Frame
 
 
 class Camera(abc.ABC):
@@ -76,7 +30,7 @@ class Camera(abc.ABC):
 
     ``frames()`` ends when the source is exhausted (replay, synthetic) or when
     :meth:`stop` is called from another thread; a lost device raises
-    :class:`~lightflow.app.errors.DeviceLostError`.
+    :class:`~lightflow.app.core.errors.DeviceLostError`.
     """
 
     #: a short URI-like description, e.g. ``aravis:127.0.0.1``
@@ -97,7 +51,7 @@ class Camera(abc.ABC):
 
     def set_size(self, width: int, height: int) -> None:
         """Set the image size; the default accepts only the current size."""
-        from lightflow.app.errors import DriverError
+        from lightflow.app.core.errors import DriverError
 
         if (width, height) != self.size:
             w, h = self.size

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from lightflow.app.errors import DriverError
+from lightflow.app.core.errors import DriverError
 from lightflow.drivers.base import PatternOutput
 
 #: how a projector's screen is chosen: its 0-based index in :func:`list_screens`, or its name

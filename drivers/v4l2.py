@@ -33,7 +33,7 @@ from fractions import Fraction
 import cv2
 import numpy as np
 
-from lightflow.app.errors import DeviceLostError, DriverError
+from lightflow.app.core.errors import DeviceLostError, DriverError
 from lightflow.drivers import v4l2_ioctl as v4l2
 from lightflow.drivers.base import Camera, Frame, FrameHandoff
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from aravis_sim import SIM_ADDRESS, Simulator, private_netns_problem
 
-from lightflow.app.rig import load_rig, rig_from_dict
+from lightflow.app.core.rig import load_rig, rig_from_dict
 
 RIG = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 

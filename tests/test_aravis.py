@@ -20,7 +20,7 @@ import pytest
 from aravis_sim import SIM_ADDRESS, Holder
 from bench_capture import scaled_rig
 
-from lightflow.app.errors import DeviceLostError, DriverError
+from lightflow.app.core.errors import DeviceLostError, DriverError
 from lightflow.drivers.aravis import (
     AravisCamera,
     _id_step,

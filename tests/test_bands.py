@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightflow.app.bands import (
+from lightflow.app.core.bands import (
     F_CENTRE,
     F_INTERVAL,
     F_LENGTH,
@@ -16,7 +16,7 @@ from lightflow.app.bands import (
     detect_bands,
     estimate_leak,
 )
-from lightflow.app.profile_model import fit_blur, pixel_value, tables
+from lightflow.app.core.profile_model import fit_blur, pixel_value, tables
 
 _B = BandParams()
 # the detector's defaults

@@ -22,13 +22,13 @@ from distributed import Client  # noqa: E402
 from lightflow.app.batch import BatchOptions, local_cluster, run_batch  # noqa: E402
 from lightflow.app.batch_bench import replicate_recording  # noqa: E402
 from lightflow.app.cli import main  # noqa: E402
-from lightflow.app.depth_model import load_or_build_lut  # noqa: E402
-from lightflow.app.flow import FlowParams  # noqa: E402
-from lightflow.app.pipeline import DepthPipeline, PipelineConfig  # noqa: E402
+from lightflow.app.core.depth_model import load_or_build_lut  # noqa: E402
+from lightflow.app.core.flow import FlowParams  # noqa: E402
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig  # noqa: E402
+from lightflow.app.core.rig import load_rig  # noqa: E402
 from lightflow.app.recording import RecordingWriter  # noqa: E402
-from lightflow.app.rig import load_rig  # noqa: E402
-from lightflow.drivers.replay import RecordedCamera  # noqa: E402
-from lightflow.drivers.synthetic import SensorModel, SyntheticCamera  # noqa: E402
+from lightflow.app.replay_camera import RecordedCamera  # noqa: E402
+from lightflow.drivers.sim.synthetic import SensorModel, SyntheticCamera  # noqa: E402
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 RENDERED = 4

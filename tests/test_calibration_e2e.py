@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main
-from lightflow.app.rig import ProjectorModel, Rig, load_rig, save_rig
+from lightflow.app.core.rig import ProjectorModel, Rig, load_rig, save_rig
 from lightflow.calibration.gamma import measure_response
 from lightflow.calibration.pipeline import calibrate_session
 from lightflow.calibration.report import compare_rigs, placement_advice

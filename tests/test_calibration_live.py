@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from lightflow.app.rig import load_rig
+from lightflow.app.core.rig import load_rig
 from lightflow.app.sinks.calibration_sink import CalibrationSink
 from lightflow.calibration.gamma import measure_ramps
 from lightflow.calibration.live import calibrate_live

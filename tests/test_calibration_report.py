@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from lightflow.app.geometry import project_points
-from lightflow.app.rig import load_rig
+from lightflow.app.core.geometry import project_points
+from lightflow.app.core.rig import load_rig
 from lightflow.calibration.gamma import Response, gamma_lines
 from lightflow.calibration.pipeline import GOOD_POSES, calibrate_camera, pose_warnings
 from lightflow.calibration.report import DeviceReport, Report

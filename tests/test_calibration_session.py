@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lightflow.app.errors import CalibrationError, ConfigError, FrameError
+from lightflow.app.core.errors import CalibrationError, ConfigError, FrameError
 from lightflow.calibration.graycode import frame_count
 from lightflow.calibration.pipeline import calibrate_session
 from lightflow.calibration.session import Board, read_session, write_session

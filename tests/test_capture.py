@@ -17,8 +17,8 @@ from bench_capture import scaled_rig
 from rerun.chunk import RrdReader
 
 from lightflow.app.cli import main
+from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import load_frame, read_recording
-from lightflow.app.rig import load_rig
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"

@@ -11,9 +11,9 @@ import pytest
 from rerun.chunk import RrdReader
 
 from lightflow.app.cli import main
+from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import RecordingWriter, read_recording
-from lightflow.app.rig import load_rig
-from lightflow.drivers.synthetic import SensorModel, SyntheticCamera
+from lightflow.drivers.sim.synthetic import SensorModel, SyntheticCamera
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 N_FRAMES = 3

@@ -10,10 +10,10 @@ import pytest
 
 from lightflow.app.cli import main as cli_main
 from lightflow.app.commands.demo import AccuracySink, simulated_leak
+from lightflow.app.core.rig import resolve_rig
 from lightflow.app.evaluation import evaluate_frame
-from lightflow.app.rig import resolve_rig
-from lightflow.drivers.scenes import get_scene
-from lightflow.drivers.synthetic import GroundTruth, SceneRenderer
+from lightflow.drivers.sim.scenes import get_scene
+from lightflow.drivers.sim.synthetic import GroundTruth, SceneRenderer
 
 
 def test_demo_scene_has_two_boards_moving_apart_before_a_static_wall():

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app import depth_model
-from lightflow.app.depth_model import (
+from lightflow.app.core import depth_model
+from lightflow.app.core.depth_model import (
     LUT_SAMPLES,
     DepthRange,
     build_lut,
@@ -19,11 +19,11 @@ from lightflow.app.depth_model import (
     load_or_build_lut,
     lookup_depth,
 )
-from lightflow.app.errors import ConfigError
-from lightflow.app.geometry import camera_rays, project_to_projector
-from lightflow.app.patterns import line_centres
-from lightflow.app.pipeline import DepthPipeline, PipelineConfig
-from lightflow.app.rig import rig_from_dict
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.geometry import camera_rays, project_to_projector
+from lightflow.app.core.patterns import line_centres
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+from lightflow.app.core.rig import rig_from_dict
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
 STRIDE = 8

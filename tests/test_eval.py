@@ -12,12 +12,12 @@ import pytest
 
 from lightflow.app.cli import main as cli_main
 from lightflow.app.commands.simulate import simulate_recording
+from lightflow.app.core.rig import resolve_rig
 from lightflow.app.evaluation import evaluate_frame, fit_plane, plane_residuals, pool_metrics
 from lightflow.app.plot import Series, line_plot, nice_ticks
 from lightflow.app.recording import RecordingWriter
-from lightflow.app.rig import resolve_rig
 from lightflow.drivers.base import Frame
-from lightflow.drivers.synthetic import GroundTruth
+from lightflow.drivers.sim.synthetic import GroundTruth
 
 # ----------------------------------------------------------------------------- metrics
 
@@ -210,6 +210,8 @@ def test_bench_stage_table():
 def test_matrix_rigs_span_the_geometry_users_build():
     """Generated rigs: one projector in front of the camera plane, toe-in 15-35 deg,
     pitches 16-40 px, one distorted; tuning and reported seeds never overlap."""
+    from lightflow.app.core.geometry import project_points
+    from lightflow.app.core.rig import rig_from_dict
     from lightflow.app.eval_matrix import (
         REPORT_SEEDS,
         TUNING_SEEDS,
@@ -217,8 +219,6 @@ def test_matrix_rigs_span_the_geometry_users_build():
         generated_rig,
         matrix_cases,
     )
-    from lightflow.app.geometry import project_points
-    from lightflow.app.rig import rig_from_dict
 
     assert not set(TUNING_SEEDS) & set(REPORT_SEEDS)
     for seed in (*TUNING_SEEDS, *REPORT_SEEDS):

@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from lightflow.app import causes
-from lightflow.app.flow import FlowModel, FlowParams
-from lightflow.app.rig import resolve_rig
+from lightflow.app.core import causes
+from lightflow.app.core.flow import FlowModel, FlowParams
+from lightflow.app.core.rig import resolve_rig
 
 
 def _grids(m, B, ramp=1.2, slant=0.0, shape=(4, 5)):

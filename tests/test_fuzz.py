@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import RECORDING_FORMAT, read_recording
-from lightflow.app.rig import load_rig
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG_FILE = ROOT / "app" / "rigs" / "two-projector.json"

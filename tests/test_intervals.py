@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lightflow.app import intervals as intervals_module
-from lightflow.app.depth_model import DepthRange
-from lightflow.app.intervals import IntervalModel
-from lightflow.app.rig import resolve_rig
+from lightflow.app.core import intervals as intervals_module
+from lightflow.app.core.depth_model import DepthRange
+from lightflow.app.core.intervals import IntervalModel
+from lightflow.app.core.rig import resolve_rig
 from lightflow.app.stages import true_flows
-from lightflow.drivers.scenes import get_scene
-from lightflow.drivers.synthetic import SceneRenderer
+from lightflow.drivers.sim.scenes import get_scene
+from lightflow.drivers.sim.synthetic import SceneRenderer
 
 STRIDE = 4
 

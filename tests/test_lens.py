@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lightflow.app.geometry import (
+from lightflow.app.core.geometry import (
     camera_rays,
     lens_coefficients,
     lens_distort,
@@ -15,7 +15,7 @@ from lightflow.app.geometry import (
     project_to_projector,
     undistort_pixels,
 )
-from lightflow.app.rig import resolve_rig
+from lightflow.app.core.rig import resolve_rig
 
 
 def _whole_image(width, height, step=7):
@@ -115,7 +115,7 @@ def test_lens_derivative_matches_finite_differences(dist):
 @pytest.mark.parametrize("strong", [None, DIST12, DIST14], ids=["rig", "12", "14-tilted"])
 def test_simulator_projection_and_core_lens_agree_over_the_panel(strong):
     # the simulator tabulates cv2.projectPoints; the core evaluates its own model
-    from lightflow.drivers.render import lens_table, pack_projector, project_to_projector
+    from lightflow.drivers.sim.render import lens_table, pack_projector, project_to_projector
 
     rig = resolve_rig("two-projector-distorted")
     rng = np.random.default_rng(4)

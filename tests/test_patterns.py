@@ -10,14 +10,14 @@ import pytest
 from PIL import Image
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.patterns import (
+from lightflow.app.core.patterns import (
     line_centres,
     line_index,
     lit_columns,
     local_pitch,
     pattern_image,
 )
-from lightflow.app.rig import Pattern, load_rig
+from lightflow.app.core.rig import Pattern, load_rig
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
 

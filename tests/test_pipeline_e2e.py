@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.errors import FrameError
-from lightflow.app.pipeline import DepthPipeline, PipelineConfig
-from lightflow.app.rig import load_rig
+from lightflow.app.core.errors import FrameError
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+from lightflow.app.core.rig import load_rig
 from lightflow.drivers.base import Frame
-from lightflow.drivers.scenes import get_scene
-from lightflow.drivers.synthetic import SceneRenderer, SyntheticCamera
+from lightflow.drivers.sim.scenes import get_scene
+from lightflow.drivers.sim.synthetic import SceneRenderer, SyntheticCamera
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
 STRIDE = 4
@@ -180,7 +180,7 @@ def _generated_rig(left, right, fcam=1700.0, crop=(640, 480, 480, 360)):
     """
     import math
 
-    from lightflow.app.rig import rig_from_dict
+    from lightflow.app.core.rig import rig_from_dict
 
     def proj(name, centre, toe, f, pitch, channel):
         c = np.asarray(centre, float)
@@ -278,7 +278,7 @@ def test_predicted_uncertainty_matches_the_errors(board_two_projector):
 
 def test_every_grid_pixel_has_one_cause(rig2):
     """Fan before a static wall: every pixel without depth is counted under one cause."""
-    from lightflow.app import causes
+    from lightflow.app.core import causes
 
     ((truth, result),) = run(rig2, "fan", frames=1)
     counts = result.cause_counts
@@ -297,8 +297,8 @@ def test_every_grid_pixel_has_one_cause(rig2):
 
 def test_lines_wider_than_the_model_get_a_warning_and_a_cause():
     """Projected lines far wider than the profile tables: counted, and the frame warns why."""
-    from lightflow.app import causes
-    from lightflow.app.rig import rig_from_dict
+    from lightflow.app.core import causes
+    from lightflow.app.core.rig import rig_from_dict
 
     d = load_rig(RIGS / "two-projector.json").to_dict()
     for proj in d["projectors"]:

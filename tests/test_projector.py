@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from PIL import ImageGrab
 
-from lightflow.app.patterns import pattern_image
-from lightflow.app.rig import load_rig
+from lightflow.app.core.patterns import pattern_image
+from lightflow.app.core.rig import load_rig
 
 try:
     from tests.xserver import start_xorg_two_heads, start_xvfb
@@ -40,9 +40,9 @@ import json, sys, threading
 from dataclasses import asdict
 import numpy as np
 from PIL import ImageGrab
-from lightflow.app.errors import LightflowError
-from lightflow.app.patterns import pattern_image
-from lightflow.app.rig import load_rig
+from lightflow.app.core.errors import LightflowError
+from lightflow.app.core.patterns import pattern_image
+from lightflow.app.core.rig import load_rig
 from lightflow.drivers.projector import ProjectorWindows, list_screens
 
 cfg = json.loads(sys.argv[1])

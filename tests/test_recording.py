@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.errors import ConfigError, DriverError, FrameError
+from lightflow.app.core.errors import ConfigError, DriverError, FrameError
+from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import (
     RecordingWriter,
     benchmark_recorder,
     load_frame,
     read_recording,
 )
-from lightflow.app.rig import load_rig
+from lightflow.app.replay_camera import RecordedCamera
 from lightflow.drivers.base import Frame
-from lightflow.drivers.replay import RecordedCamera
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 W, H = 80, 60  # two-projector rig scaled by 0.05
@@ -230,7 +230,7 @@ def test_rig_override_sets_expected_size(rec_dir, rig):
 CHILD = """
 import sys, numpy as np
 from lightflow.app.recording import RecordingWriter
-from lightflow.app.rig import load_rig
+from lightflow.app.core.rig import load_rig
 from lightflow.drivers.base import Frame
 rig = load_rig(sys.argv[2]).scaled(0.05)
 w = RecordingWriter(sys.argv[1], rig, 0.01, put_timeout_s=10)
@@ -431,7 +431,7 @@ def test_benchmark_recorder_small(tmp_path, capsys):
 
 
 def test_verify_with_rig_override(rec_dir, tmp_path, capsys):
-    from lightflow.app.rig import save_rig
+    from lightflow.app.core.rig import save_rig
 
     save_rig(load_rig(RIG_FILE).scaled(0.1), tmp_path / "big.json")
     assert cli_main(["verify", str(rec_dir), "--rig", str(tmp_path / "big.json")]) == 2

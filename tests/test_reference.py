@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.depth_model import DepthLUT
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.depth_model import DepthLUT
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import rig_from_dict
 from lightflow.app.reference import binarisation_window, reference_depth, row_flows
-from lightflow.app.rig import rig_from_dict
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
 

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from lightflow.app.rig import resolve_rig
-from lightflow.drivers.render import box_erf_mean
-from lightflow.drivers.scenes import get_scene
-from lightflow.drivers.synthetic import SceneRenderer, SensorModel
+from lightflow.app.core.rig import resolve_rig
+from lightflow.drivers.sim.render import box_erf_mean
+from lightflow.drivers.sim.scenes import get_scene
+from lightflow.drivers.sim.synthetic import SceneRenderer, SensorModel
 
 SCALE = 0.08  # 128x96 camera: small enough for many reference samples
 
@@ -88,8 +88,8 @@ def test_ball_toward_comes_closer():
 def test_projection_agrees_with_opencv(rig_name):
     import cv2
 
-    from lightflow.drivers.render import project_to_projector
-    from lightflow.drivers.synthetic import camera_rays_cv, pack_projectors
+    from lightflow.drivers.sim.render import project_to_projector
+    from lightflow.drivers.sim.synthetic import camera_rays_cv, pack_projectors
 
     rig = resolve_rig(rig_name)
     cam = rig.camera
@@ -113,7 +113,7 @@ def test_projection_agrees_with_opencv(rig_name):
 
 
 def test_gamma_and_disk_blur_change_the_image():
-    from lightflow.drivers.synthetic import disk_kernel, lens_blur
+    from lightflow.drivers.sim.synthetic import disk_kernel, lens_blur
 
     k = disk_kernel(1.5)
     assert k.sum() == pytest.approx(1.0) and np.allclose(k, k.T) and np.allclose(k, k[::-1])
@@ -140,7 +140,7 @@ def test_gamma_and_disk_blur_change_the_image():
 
 
 def test_frames_rendered_ahead_are_the_same_frames():
-    from lightflow.drivers.synthetic import SyntheticCamera
+    from lightflow.drivers.sim.synthetic import SyntheticCamera
 
     rig = resolve_rig("two-projector").scaled(SCALE)
     plain = SyntheticCamera(rig, "ball-wall", frames=3, fps=24)

@@ -10,9 +10,9 @@ import psutil
 import pytest
 from rerun.chunk import RrdReader
 
-from lightflow.app.errors import ConfigError, DriverError
-from lightflow.app.results import BandSet, FrameResult, RunStats
-from lightflow.app.rig import load_rig
+from lightflow.app.core.errors import ConfigError, DriverError
+from lightflow.app.core.results import BandSet, FrameResult, RunStats
+from lightflow.app.core.rig import load_rig
 from lightflow.app.sinks.rerun_sink import RerunSink
 from lightflow.drivers.base import Frame
 
@@ -185,9 +185,9 @@ CHILD = """
 import resource, signal, sys
 sys.path.insert(0, {tests!r})
 from test_rerun_sink import make_result, RIG_FILE
-from lightflow.app.errors import LightflowError
-from lightflow.app.results import RunStats
-from lightflow.app.rig import load_rig
+from lightflow.app.core.errors import LightflowError
+from lightflow.app.core.results import RunStats
+from lightflow.app.core.rig import load_rig
 from lightflow.app.sinks.rerun_sink import RerunSink
 rig = load_rig(RIG_FILE).scaled(0.25)
 mode = sys.argv[1]

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.errors import ConfigError
-from lightflow.app.rig import load_rig, save_rig
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import load_rig, save_rig
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
 TWO = json.loads((RIGS / "two-projector.json").read_text())

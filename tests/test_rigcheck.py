@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.depth_model import DepthRange, h_function
-from lightflow.app.errors import ConfigError
-from lightflow.app.rig import load_rig, rig_from_dict
+from lightflow.app.core.depth_model import DepthRange, h_function
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import load_rig, rig_from_dict
 from lightflow.app.rigcheck import (
     BAND_PX,
     DISPLAY_WIDTH,

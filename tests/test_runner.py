@@ -9,16 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.errors import DeviceLostError, DriverError, FrameError
+from lightflow.app.cameras import open_camera
+from lightflow.app.core.errors import DeviceLostError, DriverError, FrameError
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+from lightflow.app.core.results import BandSet, RunStats
+from lightflow.app.core.rig import load_rig
 from lightflow.app.exposure import BlurAwareExposure, measure_bands, settle_exposure
-from lightflow.app.pipeline import DepthPipeline, PipelineConfig
-from lightflow.app.results import BandSet, RunStats
-from lightflow.app.rig import load_rig
 from lightflow.app.runner import DropOldestQueue, Runner
 from lightflow.app.status import StatusLine, format_status, format_summary
-from lightflow.drivers import open_camera
 from lightflow.drivers.base import Camera, Frame
-from lightflow.drivers.synthetic import SensorModel, SyntheticCamera
+from lightflow.drivers.sim.synthetic import SensorModel, SyntheticCamera
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 WAIT_S = 60.0
@@ -267,7 +267,7 @@ def test_status_line_and_summary():
 
 
 def test_open_camera_uris(rig, tmp_path):
-    from lightflow.app.errors import ConfigError
+    from lightflow.app.core.errors import ConfigError
 
     cam = open_camera("synthetic:ball", rig, frames=2, fps=60.0)
     assert isinstance(cam, SyntheticCamera) and cam.n_frames == 2 and cam.fps == 60.0
@@ -403,7 +403,7 @@ def small_recording(rig, tmp_path_factory):
 
 @pytest.mark.parametrize("read_ahead", [1, 4])
 def test_replay_read_ahead_keeps_order_and_pixels(small_recording, read_ahead):
-    from lightflow.drivers.replay import RecordedCamera
+    from lightflow.app.replay_camera import RecordedCamera
 
     def replay(n):
         cam = RecordedCamera(small_recording, read_ahead=n)
@@ -418,7 +418,7 @@ def test_replay_read_ahead_keeps_order_and_pixels(small_recording, read_ahead):
 
 
 def test_replay_read_ahead_ends_its_reader_when_the_consumer_stops(small_recording):
-    from lightflow.drivers.replay import RecordedCamera
+    from lightflow.app.replay_camera import RecordedCamera
 
     cam = RecordedCamera(small_recording, loop=True, read_ahead=2)
     with cam:

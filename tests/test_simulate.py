@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import resolve_rig
 from lightflow.app.recording import load_frame, read_recording
-from lightflow.app.rig import resolve_rig
 from lightflow.calibration.session import read_session
-from lightflow.drivers.synthetic import GroundTruth
+from lightflow.drivers.sim.synthetic import GroundTruth
 
 W, H = 400, 300  # example rigs scaled by 0.25
 
@@ -117,8 +117,8 @@ def test_resolve_rig_by_name_and_path(tmp_path):
 
 
 def test_ball_wall_scene_has_a_static_wall_behind_a_moving_ball():
-    from lightflow.drivers.scenes import get_scene
-    from lightflow.drivers.synthetic import SceneRenderer
+    from lightflow.drivers.sim.scenes import get_scene
+    from lightflow.drivers.sim.synthetic import SceneRenderer
 
     rig = resolve_rig("two-projector").scaled(0.1)
     truth = SceneRenderer(rig, get_scene("ball-wall")).truth(0.05)

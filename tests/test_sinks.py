@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.geometry import camera_rays
+from lightflow.app.core.geometry import camera_rays
+from lightflow.app.core.results import FrameResult, RunStats
+from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import load_frame, read_recording
-from lightflow.app.results import FrameResult, RunStats
-from lightflow.app.rig import load_rig
 from lightflow.app.sinks.depth_export import DepthExportSink
 from lightflow.app.sinks.ply import PlyExportSink
 from lightflow.app.sinks.recorder import RecorderSink
@@ -97,7 +97,7 @@ def test_full_disk_during_export_is_one_line_and_leaves_no_partial_file(tmp_path
                                                                         monkeypatch):
     import errno
 
-    from lightflow.app.errors import OutputError
+    from lightflow.app.core.errors import OutputError
     from lightflow.app.sinks.depth_export import DepthExportSink
 
     real_open = open

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from lightflow.app.commands.simulate import simulate_recording
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.geometry import camera_rays, project_to_projector
+from lightflow.app.core.rig import resolve_rig
 from lightflow.app.evaluation import evaluate_recording
-from lightflow.app.geometry import camera_rays, project_to_projector
-from lightflow.app.rig import resolve_rig
 from lightflow.app.stages import FLOWS_SUFFIX, TrueFlows, format_stages
-from lightflow.drivers.synthetic import GroundTruth
+from lightflow.drivers.sim.synthetic import GroundTruth
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lightflow.app.errors import DeviceLostError, DriverError
+from lightflow.app.core.errors import DeviceLostError, DriverError
 from lightflow.drivers import v4l2_ioctl as v
 from lightflow.drivers.v4l2 import V4L2Camera, convert_frame, list_v4l2_devices
 

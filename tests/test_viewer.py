@@ -23,9 +23,9 @@ import psutil
 import pytest
 from rerun.experimental import ViewerClient
 
-from lightflow.app.causes import DEPTH, NO_LINES, STATIC, count_causes
-from lightflow.app.results import BandSet, FrameResult, RunStats
-from lightflow.app.rig import load_rig
+from lightflow.app.core.causes import DEPTH, NO_LINES, STATIC, count_causes
+from lightflow.app.core.results import BandSet, FrameResult, RunStats
+from lightflow.app.core.rig import load_rig
 from lightflow.app.sinks.rerun_sink import RerunSink, disable_viewer_analytics, rerun_binary
 from lightflow.drivers.base import Frame
 

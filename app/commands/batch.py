@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from lightflow.app.commands.replay import add_pipeline_options, pipeline_config
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.options import add_pipeline_options, pipeline_config
 
 HELP = "reprocess many recordings on Dask (a local cluster, or one by address)"
 
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             "batch needs Dask: pip install 'lightflow[batch]' (dask and distributed)"
         ) from None
     from lightflow.app import batch
-    from lightflow.app.rig import resolve_rig
+    from lightflow.app.core.rig import resolve_rig
 
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers: expected at least 1, got {args.workers}")

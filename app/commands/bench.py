@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError, LightflowError
+from lightflow.app.core.errors import ConfigError, LightflowError
 
 DESCRIPTION = """\
 Measure how long the depth pipeline takes per frame, stage by stage, at the
@@ -58,7 +58,7 @@ WARMUP = 2
 
 
 def register(subparsers) -> None:
-    from lightflow.drivers.scenes import SCENES
+    from lightflow.drivers.sim.scenes import SCENES
 
     p = subparsers.add_parser(
         "bench",
@@ -140,9 +140,9 @@ def stage_table(timings: list[dict[str, float]], wall_ms: list[float]) -> list[s
 
 
 def run(args: argparse.Namespace) -> int:
-    from lightflow.app.pipeline import DepthPipeline, PipelineConfig
-    from lightflow.app.rig import resolve_rig
-    from lightflow.drivers.synthetic import SyntheticCamera
+    from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.core.rig import resolve_rig
+    from lightflow.drivers.sim.synthetic import SyntheticCamera
 
     if args.frames < 1:
         raise ConfigError(f"--frames: expected at least 1, got {args.frames}")
@@ -239,9 +239,9 @@ def end_to_end(rig, pipeline, frames, n: int) -> list[str]:
     from pathlib import Path
 
     from lightflow.app.recording import RecordingWriter, load_frame
+    from lightflow.app.replay_camera import RecordedCamera
     from lightflow.app.runner import Runner
     from lightflow.app.sinks.depth_export import DepthExportSink
-    from lightflow.drivers.replay import RecordedCamera
 
     cam = rig.camera
     with tempfile.TemporaryDirectory(prefix="lightflow-bench-") as tmp:

@@ -68,7 +68,7 @@ def _progress(stage: str, i: int, n: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lightflow.app.errors import ConfigError
+    from lightflow.app.core.errors import ConfigError
 
     if args.session is not None and args.camera is not None:
         raise ConfigError("calibrate: give either a session folder or --camera, not both")
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
 def calibrate_offline(session: Path, out: Path, progress=None) -> int:
     """Calibrate a session folder, print the report (with CAL/gamma/ measured), write the rig."""
-    from lightflow.app.rig import read_json, rig_from_dict, save_rig
+    from lightflow.app.core.rig import read_json, rig_from_dict, save_rig
     from lightflow.calibration.pipeline import calibrate_session
     from lightflow.calibration.report import compare_rigs, rigcheck_lines
     from lightflow.calibration.simulate import TRUTH_FILE
@@ -103,7 +103,7 @@ def calibrate_offline(session: Path, out: Path, progress=None) -> int:
     save_rig(rig, out)
     print(f"wrote {out}")
     # the placement as pictures: dh/dz, expected error, usable pixels, overlap
-    from lightflow.app.commands.rig import write_images
+    from lightflow.app.options import write_images
     from lightflow.app.rigcheck import check_rig
 
     pictures = out.with_name(out.stem + "-placement")
@@ -118,9 +118,9 @@ def run_live(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from lightflow.app.commands.project import parse_screens
-    from lightflow.app.errors import ConfigError
-    from lightflow.app.rig import resolve_rig
+    from lightflow.app.core.errors import ConfigError
+    from lightflow.app.core.rig import resolve_rig
+    from lightflow.app.options import parse_screens
     from lightflow.calibration.live import calibrate_live
     from lightflow.calibration.session import Board, ProjectorSpec
 
@@ -132,7 +132,7 @@ def run_live(args: argparse.Namespace) -> int:
     specs = [ProjectorSpec(p.name, p.width, p.height, p.patterns) for p in rig.projectors]
     selectors = parse_screens(args.screens, [p.name for p in specs])
     try:
-        from lightflow.drivers import open_camera
+        from lightflow.app.cameras import open_camera
     except ImportError:
         raise ConfigError("calibrate --camera: this build has no camera factory "
                           "(lightflow.drivers.open_camera)") from None

@@ -6,9 +6,8 @@ import argparse
 import sys
 import threading
 
-from lightflow.app.errors import ConfigError, FrameError
-
-from .replay import (
+from lightflow.app.core.errors import ConfigError, FrameError
+from lightflow.app.options import (
     add_output_options,
     add_pipeline_options,
     build_sinks,
@@ -113,12 +112,12 @@ def parse_exposure(text: str | None) -> float | str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lightflow.app.cameras import open_camera
+    from lightflow.app.core.rig import resolve_rig
     from lightflow.app.exposure import BlurAwareExposure, settle_exposure
     from lightflow.app.recording import RecordingWriter
-    from lightflow.app.rig import resolve_rig
     from lightflow.app.runner import Runner
     from lightflow.app.status import StatusLine
-    from lightflow.drivers import open_camera
 
     exposure = parse_exposure(args.exposure)
     if args.frames is not None and args.frames <= 0:
@@ -216,10 +215,9 @@ def run(args: argparse.Namespace) -> int:
 def _pattern_output(args: argparse.Namespace, rig):
     if not args.screens:
         return None
-    from lightflow.app.patterns import pattern_image
+    from lightflow.app.core.patterns import pattern_image
+    from lightflow.app.options import parse_screens
     from lightflow.drivers.projector import ProjectorWindows
-
-    from .project import parse_screens
 
     selectors = parse_screens(args.screens, [p.name for p in rig.projectors])
     return ProjectorWindows(

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.core.errors import ConfigError, DriverError
 from lightflow.app.status import is_terminal
 
 HELP = "render a moving scene, reconstruct its depth and show it (no hardware needed)"
@@ -281,17 +281,17 @@ class Helper:
     SCRIPT = (
         "import sys\n"
         "import numpy as np\n"
-        "from lightflow.app import bands\n"
+        "from lightflow.app.core import bands\n"
         "rig, scene, wait = sys.argv[1:]\n"
         "bands.sliding_mid(np.zeros(64), 5, np.zeros((2, 64)))\n"
         "print('sliding_mid', flush=True)\n"
-        "from lightflow.app.profile_model import tables\n"
+        "from lightflow.app.core.profile_model import tables\n"
         "if wait == 'wait':\n"
         "    sys.stdin.readline()\n"
         "tables()\n"
         "print('tables', flush=True)\n"
-        "from lightflow.app.rig import resolve_rig\n"
-        "from lightflow.drivers.synthetic import warm_up_renderer\n"
+        "from lightflow.app.core.rig import resolve_rig\n"
+        "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
     )
@@ -398,13 +398,13 @@ class BandStageWarmUp:
     process builds the profile tables with (numba's on-disk cache hands it
     over); :meth:`detect` the rest of the detector and :meth:`rasterise` the
     slants and the rasterisation onto the analysis grid, meanwhile.  Argument types follow
-    :class:`~lightflow.app.pipeline.DepthPipeline`: a mismatch would only
+    :class:`~lightflow.app.core.pipeline.DepthPipeline`: a mismatch would only
     compile a kernel once more.
     """
 
     def __init__(self, rig, config):
-        from lightflow.app import bands as bd
-        from lightflow.app.pipeline import MAX_BANDS_PER_ROW
+        from lightflow.app.core import bands as bd
+        from lightflow.app.core.pipeline import MAX_BANDS_PER_ROW
 
         cam = rig.camera
         x = np.arange(cam.width)
@@ -424,7 +424,7 @@ class BandStageWarmUp:
 
     def measure_row(self) -> None:
         """Compile (or load) ``bands_in_row``, the detector's measurement of one row."""
-        from lightflow.app import bands as bd
+        from lightflow.app.core import bands as bd
 
         w = self.image.shape[1]
         out = np.empty((self.bands.shape[2], self.bands.shape[3]))
@@ -432,7 +432,7 @@ class BandStageWarmUp:
 
     def detect(self) -> None:
         """Compile (or load) the band detector's kernels."""
-        from lightflow.app import bands as bd
+        from lightflow.app.core import bands as bd
 
         weights = np.zeros((2, 3))
         weights[0, 0] = weights[1, 2] = 1.0
@@ -441,7 +441,7 @@ class BandStageWarmUp:
 
     def rasterise(self) -> None:
         """Compile (or load) the band slants and the rasterisation onto the grid."""
-        from lightflow.app import bands as bd
+        from lightflow.app.core import bands as bd
 
         fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
         gh, gw = self.cells
@@ -455,12 +455,12 @@ class BandStageWarmUp:
 def simulated_leak(rig) -> float:
     """The colour leak between the two pattern channels of the simulated camera.
 
-    The mean of the two directions of :class:`~lightflow.drivers.synthetic.SensorModel`'s
+    The mean of the two directions of :class:`~lightflow.drivers.sim.synthetic.SensorModel`'s
     crosstalk (red into blue and blue into red): what ``--crosstalk auto``
     estimates from the frames, known here because the demo's camera is simulated.
     """
-    from lightflow.app.rig import CHANNEL_INDEX
-    from lightflow.drivers.synthetic import SensorModel
+    from lightflow.app.core.rig import CHANNEL_INDEX
+    from lightflow.drivers.sim.synthetic import SensorModel
 
     xt = np.asarray(SensorModel().crosstalk)
     a, b = (CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns)
@@ -469,7 +469,7 @@ def simulated_leak(rig) -> float:
 
 def get_scene_checked(name: str):
     """The built-in scene ``name`` (ConfigError naming the choices otherwise)."""
-    from lightflow.drivers.scenes import get_scene
+    from lightflow.drivers.sim.scenes import get_scene
 
     return get_scene(name)
 
@@ -477,17 +477,16 @@ def get_scene_checked(name: str):
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from lightflow.app import bands as bd
-    from lightflow.app.depth_model import load_or_build_lut
-    from lightflow.app.pipeline import DepthPipeline
-    from lightflow.app.profile_model import prefetch_tables, tables_path
-    from lightflow.app.rig import resolve_rig
+    from lightflow.app.core import bands as bd
+    from lightflow.app.core.depth_model import load_or_build_lut
+    from lightflow.app.core.pipeline import DepthPipeline
+    from lightflow.app.core.profile_model import prefetch_tables, tables_path
+    from lightflow.app.core.rig import resolve_rig
+    from lightflow.app.options import close_all, pipeline_config
     from lightflow.app.runner import Runner
     from lightflow.app.status import Progress, StatusLine
-    from lightflow.drivers import render
-    from lightflow.drivers.synthetic import SyntheticCamera
-
-    from .replay import close_all, pipeline_config
+    from lightflow.drivers.sim import render
+    from lightflow.drivers.sim.synthetic import SyntheticCamera
 
     start = time.perf_counter()
 

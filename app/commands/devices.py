@@ -113,7 +113,7 @@ def usb3vision_nodes(sysfs: str = USB_SYSFS, dev_root: str = "/dev/bus/usb") -> 
 
 
 def _aravis_lines(discover: bool) -> tuple[list[str], bool]:
-    from lightflow.app.errors import DriverError
+    from lightflow.app.core.errors import DriverError
 
     if not discover:
         return ["  (discovery skipped)"], False

@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
 
 DESCRIPTION = """\
 Replay simulated recordings (written by `lightflow simulate`, which stores the
@@ -148,10 +148,10 @@ def plot_error_vs_exposure(metrics, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lightflow.app.core.pipeline import PipelineConfig
+    from lightflow.app.core.rig import resolve_rig
     from lightflow.app.evaluation import evaluate_recording, require_truth, write_metrics_json
-    from lightflow.app.pipeline import PipelineConfig
     from lightflow.app.recording import read_recording
-    from lightflow.app.rig import resolve_rig
 
     if args.matrix is not None:
         return _run_matrix(args)

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import cv2
 
-from lightflow.app.errors import ConfigError
-from lightflow.app.patterns import line_centres, pattern_image
-from lightflow.app.rig import resolve_rig
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.patterns import line_centres, pattern_image
+from lightflow.app.core.rig import resolve_rig
 
 DESCRIPTION = """\
 Write the image each projector of a rig shows, at the projector's resolution,

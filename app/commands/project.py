@@ -7,7 +7,7 @@ import signal
 import sys
 import threading
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.options import parse_screens
 
 HELP = "show each projector's pattern fullscreen on its screen until Esc or Ctrl-C"
 
@@ -53,20 +53,9 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def parse_screens(text: str, projector_names: list[str]) -> list[int | str]:
-    """Split ``--screens`` into one selector per projector (ints for digit strings)."""
-    parts = [s.strip() for s in text.split(",")]
-    if any(not s for s in parts) or len(parts) != len(projector_names):
-        raise ConfigError(
-            f"--screens: expected {len(projector_names)} comma-separated screen(s) for "
-            f"projector(s) {', '.join(projector_names)}, got {text!r}"
-        )
-    return [int(s) if s.isdigit() else s for s in parts]
-
-
 def run(args: argparse.Namespace) -> int:
-    from lightflow.app.patterns import pattern_image
-    from lightflow.app.rig import resolve_rig
+    from lightflow.app.core.patterns import pattern_image
+    from lightflow.app.core.rig import resolve_rig
     from lightflow.drivers.projector import ProjectorWindows
 
     rig = resolve_rig(args.rig)

@@ -6,11 +6,10 @@ import argparse
 import math
 from pathlib import Path
 
-import cv2
-
-from lightflow.app.depth_model import DepthRange
-from lightflow.app.errors import ConfigError
-from lightflow.app.rig import resolve_rig
+from lightflow.app.core.depth_model import DepthRange
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import resolve_rig
+from lightflow.app.options import write_images
 from lightflow.app.rigcheck import BAND_PX, MAX_ERROR_M, RigReport, check_rig
 
 DESCRIPTION = f"""\
@@ -81,21 +80,6 @@ def register(subparsers) -> None:
         help="check every PX-th camera row and column (default: %(default)s)",
     )  # fmt: skip
     c.set_defaults(func=run)
-
-
-def write_images(images: dict, out: Path) -> list[Path]:
-    """Write ``name -> BGR image`` as ``out/<name>.png``; the paths written."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"{out}: cannot create the folder: {exc.strerror}") from None
-    written = []
-    for name, img in images.items():
-        path = out / f"{name}.png"
-        if not cv2.imwrite(str(path), img):
-            raise ConfigError(f"{path}: cannot write the picture")
-        written.append(path)
-    return written
 
 
 def report_lines(report: RigReport) -> list[str]:

@@ -9,12 +9,12 @@ import math
 import sys
 from pathlib import Path
 
-from lightflow.app.errors import ConfigError
-from lightflow.app.rig import EXAMPLE_RIGS, Rig, resolve_rig
+from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import EXAMPLE_RIGS, Rig, resolve_rig
 
 
 def _scene_lines() -> str:
-    from lightflow.drivers.scenes import SCENES
+    from lightflow.drivers.sim.scenes import SCENES
 
     width = max(len(n) for n in SCENES)
     return "\n".join(
@@ -53,7 +53,7 @@ Examples:
 
 
 def register(subparsers) -> None:
-    from lightflow.drivers.scenes import SCENES
+    from lightflow.drivers.sim.scenes import SCENES
 
     p = subparsers.add_parser(
         "simulate",
@@ -211,15 +211,15 @@ def simulate_recording(
     """Render ``frames`` frames of ``scene`` into the recording folder ``out``, with truth.
 
     ``camera_gamma``, ``lens_psf`` and ``lens_blur_px`` select physics the
-    reconstruction does not model (see :class:`~lightflow.drivers.synthetic.SensorModel`).
+    reconstruction does not model (see :class:`~lightflow.drivers.sim.synthetic.SensorModel`).
     ``truth_flows`` also writes each frame's true sweeps, line intervals and flows
     as ``ground_truth/<frame>_flows.npz`` (:class:`lightflow.app.stages.TrueFlows`).
     Returns the exit status (0).
     """
     from lightflow.app.evaluation import SCENE_FORMAT, SCENE_JSON, TRUTH_DIR
     from lightflow.app.recording import RecordingWriter
-    from lightflow.drivers.scenes import get_scene
-    from lightflow.drivers.synthetic import SensorModel, SyntheticCamera
+    from lightflow.drivers.sim.scenes import get_scene
+    from lightflow.drivers.sim.synthetic import SensorModel, SyntheticCamera
 
     info = get_scene(scene)
     exposure = info.exposure_s if exposure_s is None else float(exposure_s)
@@ -259,7 +259,7 @@ def simulate_recording(
 
     flows_renderer = None
     if truth_flows:
-        from lightflow.drivers.synthetic import SceneRenderer
+        from lightflow.drivers.sim.synthetic import SceneRenderer
 
         flows_renderer = SceneRenderer(rig, info)
 

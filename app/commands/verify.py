@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from lightflow.app.errors import ConfigError, FrameError
+from lightflow.app.core.errors import ConfigError, FrameError
+from lightflow.app.core.rig import resolve_rig
 from lightflow.app.recording import (
     FRAMES_DIR,
     Recording,
@@ -14,7 +15,6 @@ from lightflow.app.recording import (
     timestamp_problems,
     unlisted_files,
 )
-from lightflow.app.rig import resolve_rig
 
 DESCRIPTION = """\
 Check a recording folder (recording.json + frames/*.png) before replaying it or

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from lightflow.app.results import FrameResult, RunStats
+from lightflow.app.core.results import FrameResult, RunStats
 
 
 class Sink(Protocol):

@@ -21,7 +21,7 @@ import collections
 import threading
 from typing import Any
 
-from lightflow.app.results import FrameResult, RunStats
+from lightflow.app.core.results import FrameResult, RunStats
 
 #: results queued per sink by default (a 1600x1200 result is a few MiB)
 DEFAULT_MAXSIZE = 4

@@ -30,7 +30,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
 from lightflow.app.sinks.rerun_sink import RerunOutput, RerunProcess
 from lightflow.calibration.live import PoseView, guessed_K
 from lightflow.calibration.session import Board

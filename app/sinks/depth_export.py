@@ -9,8 +9,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-from lightflow.app.errors import FrameError, OutputError
-from lightflow.app.results import FrameResult, RunStats
+from lightflow.app.core.errors import FrameError, OutputError
+from lightflow.app.core.results import FrameResult, RunStats
 
 
 def write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
@@ -18,7 +18,7 @@ def write_atomic(path: Path, write: Callable[[BinaryIO], None]) -> None:
 
     ``write(fh)`` fills a temporary file beside ``path``, which then replaces
     it.  A failure (a full disk) removes the temporary file and becomes one
-    :class:`~lightflow.app.errors.OutputError` naming ``path``.
+    :class:`~lightflow.app.core.errors.OutputError` naming ``path``.
     """
     tmp = path.with_name(f".{path.name}.tmp")
     try:

@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lightflow.app.errors import FrameError
-from lightflow.app.geometry import camera_rays
-from lightflow.app.results import FrameResult, RunStats
-from lightflow.app.rig import Rig
+from lightflow.app.core.errors import FrameError
+from lightflow.app.core.geometry import camera_rays
+from lightflow.app.core.results import FrameResult, RunStats
+from lightflow.app.core.rig import Rig
 from lightflow.app.sinks.depth_export import make_output_dir, write_atomic
 
 PLY_DTYPE = np.dtype(
@@ -55,7 +55,7 @@ def depth_to_points(
     depth : numpy.ndarray
         ``(H, W)`` depth z in metres, NaN without estimate.
     rays : numpy.ndarray
-        ``(H, W, 3)`` rays with z = 1 (:func:`lightflow.app.geometry.camera_rays`).
+        ``(H, W, 3)`` rays with z = 1 (:func:`lightflow.app.core.geometry.camera_rays`).
     image : numpy.ndarray, optional
         ``(H, W, 3)`` RGB image giving the colours (uint8 ``(n, 3)``).
     max_points : int, optional

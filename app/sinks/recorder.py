@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from lightflow.app.core.results import FrameResult, RunStats
+from lightflow.app.core.rig import Rig
 from lightflow.app.recording import RecordingWriter
-from lightflow.app.results import FrameResult, RunStats
-from lightflow.app.rig import Rig
 
 
 class RecorderSink:

@@ -51,12 +51,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lightflow.app.causes import CAUSES
-from lightflow.app.errors import ConfigError, DriverError
+from lightflow.app.core.causes import CAUSES
+from lightflow.app.core.errors import ConfigError, DriverError
+from lightflow.app.core.geometry import camera_rays
+from lightflow.app.core.results import BandSet, FrameResult, RunStats
+from lightflow.app.core.rig import Rig
 from lightflow.app.evaluation import evaluate_frame
-from lightflow.app.geometry import camera_rays
-from lightflow.app.results import BandSet, FrameResult, RunStats
-from lightflow.app.rig import Rig
 from lightflow.app.sinks.ply import depth_to_points, image_to_rgb8
 
 # The SDK's Rust side prints its own multi-line errors when an .rrd write fails; this

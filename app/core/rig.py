@@ -181,7 +181,7 @@ def _numbers_only(value: Any, depth: int) -> bool:
     return isinstance(value, list) and all(_numbers_only(v, depth - 1) for v in value)
 
 
-class _Reader:
+class FieldReader:
     """Strict reader that names ``file: field`` in every error."""
 
     def __init__(self, source: str):
@@ -256,7 +256,7 @@ class _Reader:
         return value
 
 
-def _parse_intrinsics(rd: _Reader, d: dict, where: str):
+def _parse_intrinsics(rd: FieldReader, d: dict, where: str):
     width = rd.integer(d["width"], f"{where}.width", maximum=MAX_IMAGE_SIDE)
     height = rd.integer(d["height"], f"{where}.height", maximum=MAX_IMAGE_SIDE)
     K = rd.matrix(d["K"], f"{where}.K", (3, 3))
@@ -338,7 +338,7 @@ def distortion_problem(width: int, height: int, K: np.ndarray, dist: np.ndarray)
     return ""
 
 
-def parse_pattern(rd: _Reader, d: Any, where: str, proj_width: int) -> Pattern:
+def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Pattern:
     """Parse one pattern entry and check that it fits a projector ``proj_width`` wide."""
     base = {"channel", "kind", "width_px"}
     if not isinstance(d, dict):
@@ -386,7 +386,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     source : str
         Names the file (and the field prefix) in error messages.
     """
-    rd = _Reader(source)
+    rd = FieldReader(source)
     rd.obj(data, "rig", {"format", "camera", "projectors"})
     if data["format"] != RIG_FORMAT:
         raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {short_json(data['format'])}")
@@ -484,7 +484,7 @@ def load_rig(path: str | Path) -> Rig:
 
 
 #: the example rigs shipped with lightflow, by name
-EXAMPLE_RIGS_DIR = Path(__file__).resolve().parent / "rigs"
+EXAMPLE_RIGS_DIR = Path(__file__).resolve().parent.parent / "rigs"
 EXAMPLE_RIGS = ("two-projector", "single-projector", "two-projector-distorted")
 
 

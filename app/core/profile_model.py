@@ -1,7 +1,7 @@
 """The band profile model: line box * motion box * Gaussian blur, and its inversion.
 
 A band is ``box(L) * box(w) * gauss(sigma)`` (sweep, line width in camera
-pixels, optics).  :mod:`lightflow.app.bands` measures two numbers per band,
+pixels, optics).  :mod:`lightflow.app.core.bands` measures two numbers per band,
 both scale-free: the full width ``m`` at half of the band's plateau (the
 plateau taken as the mean over the central half of a first half-maximum
 width) and the ramp ``r`` from the 50 % to the 20 % level.  For long bands

@@ -1,6 +1,6 @@
 """Built-in moving scenes for the synthetic camera.
 
-Each scene is a list of primitive rows for :mod:`lightflow.drivers.render`
+Each scene is a list of primitive rows for :mod:`lightflow.drivers.sim.render`
 plus a nominal exposure at which its bands are about 10-15 px long with the
 example rigs.  Object id 1 is static background; ids >= 2 move.
 """
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
 
 from .render import PRIM_BLADE, PRIM_DISK, PRIM_PLANE, PRIM_RECT, PRIM_SIZE, PRIM_SPHERE
 

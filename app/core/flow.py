@@ -100,7 +100,7 @@ class FlowMaps:
     lr_sys : numpy.ndarray
         Systematic error of ``log_ratio`` (blur model), one standard deviation.
     why : numpy.ndarray
-        uint8 :mod:`lightflow.app.causes` code: ``DEPTH`` where ``log_ratio`` is
+        uint8 :mod:`lightflow.app.core.causes` code: ``DEPTH`` where ``log_ratio`` is
         finite, else why not.
     """
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from lightflow.app.errors import ConfigError
+from lightflow.app.core.errors import ConfigError
 from lightflow.drivers.base import Camera
 
 #: the accepted forms, shown in every error about a camera URI
@@ -83,7 +83,7 @@ def open_camera(uri: str, rig=None, **opts: Any) -> Camera:
 
         return V4L2Camera(target, **_pick(opts, uri, ("pixel_format", "n_buffers")))
     if scheme == "synthetic":
-        from lightflow.drivers.synthetic import SyntheticCamera
+        from lightflow.drivers.sim.synthetic import SyntheticCamera
 
         if rig is None:
             raise ConfigError(f"camera {uri!r}: a synthetic camera needs a rig (--rig RIG)")
@@ -91,6 +91,6 @@ def open_camera(uri: str, rig=None, **opts: Any) -> Camera:
         if "frames" in opts and opts["frames"] is None:
             kw["frames"] = None  # endless, not the driver's default of 10
         return SyntheticCamera(rig, target, **kw)
-    from lightflow.drivers.replay import RecordedCamera
+    from lightflow.app.replay_camera import RecordedCamera
 
     return RecordedCamera(target, rig=rig, **_pick(opts, uri, ("loop", "realtime")))

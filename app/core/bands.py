@@ -18,7 +18,7 @@ bands without a clean gap on both sides (overlapping bands, sweep close to the
 interval), asymmetric bands (cut by an object boundary or the panel edge),
 bands whose neighbour intervals disagree (boundaries, missing lines), and
 faint bands.  Static lines are rejected later, where the line width in
-camera pixels is known (:mod:`lightflow.app.flow`).
+camera pixels is known (:mod:`lightflow.app.core.flow`).
 """
 
 from __future__ import annotations
@@ -316,7 +316,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         if xl < 0 or xr < 0:
             continue
         # plateau: mean over the central half of the band (the max alone is biased by noise)
-        # (the same definition as lightflow.app.profile_model.measure)
+        # (the same definition as lightflow.app.core.profile_model.measure)
         l1 = xr - xl
         p0 = int(np.ceil(xl + 0.25 * l1))
         p1 = int(np.floor(xr - 0.25 * l1))

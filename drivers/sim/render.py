@@ -9,13 +9,13 @@ light and colour crosstalk.  Time and pixel area are integrated together with
 stratified samples.  Noise and 8-bit quantisation are applied by
 :func:`expose`.  It shares no geometry code with the reconstruction: camera
 rays and projector pixels come from OpenCV, patterns are rasterised by
-:mod:`lightflow.drivers.synthetic` from the format's definition.
+:mod:`lightflow.drivers.sim.synthetic` from the format's definition.
 
 Scene primitives are rows of a float64 array (see ``PRIM_*`` and the builders
-in :mod:`lightflow.drivers.scenes`) so that the kernel stays one compiled loop.
+in :mod:`lightflow.drivers.sim.scenes`) so that the kernel stays one compiled loop.
 
 The kernels are serial over a range of image rows and release the GIL;
-:mod:`lightflow.drivers.synthetic` runs bands of rows on a thread per core.
+:mod:`lightflow.drivers.sim.synthetic` runs bands of rows on a thread per core.
 numba's ``parallel=True`` would compile each of them about three times slower
 (about 18 s more for the renderer on a cold cache, on the critical path of a
 first ``lightflow demo``) for the same speed.  Every kernel has one call site
@@ -881,7 +881,7 @@ def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
 def project_to_projector(pp, points):
     """Projector pixels ``(n, 2)`` of camera-frame ``points`` ``(n, 3)`` with the kernel's model.
 
-    ``pp`` is one row of :func:`lightflow.drivers.synthetic.pack_projectors`
+    ``pp`` is one row of :func:`lightflow.drivers.sim.synthetic.pack_projectors`
     (:func:`pack_projector`).
     """
     out = np.empty((points.shape[0], 2))

@@ -2,7 +2,7 @@
 
 Every grid pixel ends as exactly one of :data:`CAUSES`: ``depth`` or the first
 reason, in pipeline order, that kept it from a depth.  Band-level reasons come
-from the band detector (``F_VALID`` codes of :mod:`lightflow.app.bands`) through
+from the band detector (``F_VALID`` codes of :mod:`lightflow.app.core.bands`) through
 the band nearest to the pixel along its row; the flow stage adds its own.
 """
 

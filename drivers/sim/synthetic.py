@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lightflow.app.errors import ConfigError, DriverError
-from lightflow.app.rig import CHANNEL_INDEX, Pattern, Rig
+from lightflow.app.core.errors import ConfigError, DriverError
+from lightflow.app.core.rig import CHANNEL_INDEX, Pattern, Rig
 
-from .base import Camera, Frame
+from ..base import Camera, Frame
 from .render import (
     KNOTS,
     knot_states,
@@ -120,7 +120,7 @@ def pattern_footprints(pattern: Pattern, width: int) -> np.ndarray:
 
 
 def pack_projectors(rig: Rig) -> np.ndarray:
-    """Per projector a row of :func:`lightflow.drivers.render.pack_projector` (zero-padded)."""
+    """Per projector a row of :func:`lightflow.drivers.sim.render.pack_projector` (zero-padded)."""
     rows = [pack_projector(p.R, p.t, p.K, p.dist, p.width, p.height) for p in rig.projectors]
     out = np.zeros((len(rows), max(len(r) for r in rows)))
     for i, r in enumerate(rows):
@@ -382,7 +382,7 @@ class SyntheticCamera(Camera):
     rig : Rig
         The rig the scene is rendered with.
     scene : str
-        Name of a built-in scene (see :data:`lightflow.drivers.scenes.SCENES`).
+        Name of a built-in scene (see :data:`lightflow.drivers.sim.scenes.SCENES`).
     frames : int or None
         Number of frames, ``None`` for endless.
     fps : float

@@ -53,7 +53,7 @@ class PipelineConfig:
     predict_intervals : bool
         Two projectors: where the sparse pattern's measured line interval
         disagrees with the one its dense partner and the rig predict (curved
-        surfaces), use the prediction (:mod:`lightflow.app.intervals`).
+        surfaces), use the prediction (:mod:`lightflow.app.core.intervals`).
     """
 
     stride: int = 4

@@ -8,7 +8,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
-from lightflow.drivers.base import Frame
+from .frame import Frame
 
 
 @dataclass
@@ -36,7 +36,7 @@ class BandSet:
 
 @dataclass
 class FrameResult:
-    """Per-frame output of :class:`lightflow.app.pipeline.DepthPipeline`.
+    """Per-frame output of :class:`lightflow.app.core.pipeline.DepthPipeline`.
 
     Maps named ``*_grid`` are on the analysis grid: every ``stride``-th row
     and column of the camera image; ``depth`` is at full camera resolution.
@@ -65,7 +65,7 @@ class FrameResult:
         resolution map, upsampled on first use (only sinks that show or write
         it pay for it).
     causes_grid : numpy.ndarray or None
-        uint8 :mod:`lightflow.app.causes` code per grid pixel: depth, or why not.
+        uint8 :mod:`lightflow.app.core.causes` code per grid pixel: depth, or why not.
     cause_counts : numpy.ndarray or None
         Grid pixels per cause code (``len(CAUSES)`` counts).
     leak_known : bool

@@ -63,8 +63,8 @@ class DepthRange:
 def pattern_params(rig: Rig) -> np.ndarray:
     """Per pattern: [proj index, kind code, pitch or exp2 step, projector width].
 
-    Kind code and step are :func:`lightflow.app.patterns.pattern_code`, read by
-    :func:`lightflow.app.patterns.pitch_at`.
+    Kind code and step are :func:`lightflow.app.core.patterns.pattern_code`, read by
+    :func:`lightflow.app.core.patterns.pitch_at`.
     """
     rows = []
     for pi, proj in enumerate(rig.projectors):

@@ -19,9 +19,9 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from lightflow.app.errors import DriverError, FrameError
+from lightflow.app.core.errors import DriverError, FrameError
+from lightflow.app.core.rig import Rig
 from lightflow.app.recording import Recording, load_frame, read_recording
-from lightflow.app.rig import Rig
 from lightflow.drivers.base import Camera, Frame
 
 #: decoded frames kept ready by the reader thread (a 1600x1200 RGB frame is 5.5 MiB)

@@ -1,0 +1,146 @@
+"""Command-line options and run set-up shared by the commands.
+
+Output options and sinks (``replay``, ``capture``, ``demo``), pipeline options
+(``replay``, ``capture``, ``batch``), projector screens (``project``,
+``capture``, ``calibrate``) and image writing (``rig``, ``calibrate``).  Command
+modules import from here, never from each other.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+
+from lightflow.app.core.errors import ConfigError
+
+
+def write_images(images: dict, out: Path) -> list[Path]:
+    """Write ``name -> BGR image`` as ``out/<name>.png``; the paths written."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot create the folder: {exc.strerror}") from None
+    written = []
+    for name, img in images.items():
+        path = out / f"{name}.png"
+        if not cv2.imwrite(str(path), img):
+            raise ConfigError(f"{path}: cannot write the picture")
+        written.append(path)
+    return written
+
+
+def parse_screens(text: str, projector_names: list[str]) -> list[int | str]:
+    """Split ``--screens`` into one selector per projector (ints for digit strings)."""
+    parts = [s.strip() for s in text.split(",")]
+    if any(not s for s in parts) or len(parts) != len(projector_names):
+        raise ConfigError(
+            f"--screens: expected {len(projector_names)} comma-separated screen(s) for "
+            f"projector(s) {', '.join(projector_names)}, got {text!r}"
+        )
+    return [int(s) if s.isdigit() else s for s in parts]
+
+
+def add_output_options(p: argparse.ArgumentParser, rerun_required: bool = False) -> None:
+    """``--rrd/--spawn/--serve``, ``--compress``, ``--export-depth``, ``--export-ply``."""
+    g = p.add_mutually_exclusive_group(required=rerun_required)
+    g.add_argument("--rrd", metavar="FILE", help="write a Rerun recording (open: rerun FILE)")
+    g.add_argument("--spawn", action="store_true", help="show results in a new Rerun viewer")
+    g.add_argument(
+        "--serve", action="store_true",
+        help="serve results on 127.0.0.1:9876 (view: rerun --connect rerun+http://127.0.0.1:9876/proxy)",
+    )  # fmt: skip
+    p.add_argument("--compress", action="store_true", help="log camera images to Rerun as JPEG")
+    p.add_argument("--export-depth", metavar="DIR", help="write DIR/<frame>.npy depth maps (m)")
+    p.add_argument(
+        "--export-ply", metavar="DIR",
+        help="write DIR/<frame>.ply point clouds (world axes, y up; see docs/formats.md)",
+    )  # fmt: skip
+
+
+def add_pipeline_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--stride", type=int, choices=(1, 2, 4), default=4,
+        help="analysis grid stride in pixels (1 = finest, slowest; default 4)",
+    )  # fmt: skip
+    p.add_argument(
+        "--smoothing", type=float, metavar="PX",
+        help="sigma of the flow-ratio smoothing in camera pixels (default: the pipeline's)",
+    )  # fmt: skip
+
+
+def pipeline_config(args: argparse.Namespace):
+    """The :class:`PipelineConfig` the options ask for."""
+    from lightflow.app.core.flow import FlowParams
+    from lightflow.app.core.pipeline import PipelineConfig
+
+    smoothing = getattr(args, "smoothing", None)
+    if smoothing is None:
+        return PipelineConfig(stride=args.stride)
+    if not smoothing >= 0:
+        raise ConfigError(f"--smoothing: expected a non-negative number of pixels, got {smoothing}")
+    return PipelineConfig(stride=args.stride, flow=FlowParams(smoothing_px=smoothing))
+
+
+def make_pipeline(rig, args: argparse.Namespace):
+    """The depth pipeline, showing progress while its LUT is built (first use of a rig)."""
+    from lightflow.app.core.pipeline import DepthPipeline
+    from lightflow.app.status import Progress
+
+    return DepthPipeline(rig, pipeline_config(args), progress=Progress("building depth LUT"))
+
+
+def build_sinks(args: argparse.Namespace, rig) -> list:
+    """The sinks the output options ask for (on failure, those already open are closed)."""
+    sinks: list = []
+    try:
+        if args.rrd or args.spawn or args.serve:
+            from lightflow.app.sinks.rerun_sink import RerunSink
+
+            mode = "rrd" if args.rrd else "spawn" if args.spawn else "serve"
+            sinks.append(RerunSink(rig, mode, path=args.rrd, compress=args.compress))
+        if args.export_depth:
+            from lightflow.app.sinks.depth_export import DepthExportSink
+
+            sinks.append(DepthExportSink(args.export_depth))
+        if args.export_ply:
+            from lightflow.app.sinks.ply import PlyExportSink
+
+            sinks.append(PlyExportSink(args.export_ply, rig))
+    except BaseException:
+        close_all(sinks)
+        raise
+    return sinks
+
+
+def close_all(sinks) -> None:
+    """Close sinks that never reached a Runner (errors ignored: another one is on its way)."""
+    for sink in sinks:
+        try:
+            sink.close()
+        except Exception:  # noqa: BLE001, S110 - the original error is the one to report
+            pass
+
+
+def describe_outputs(sinks, out=None) -> None:
+    out = out if out is not None else sys.stdout
+    for sink in sinks:
+        describe = getattr(sink, "describe", None)
+        if describe is not None:
+            print(describe(), file=out)
+
+
+def check_rig_fits_recording(rig, rig_path, recording) -> None:
+    """Refuse an override rig whose camera size differs from the recording's, before the
+    (slow) LUT build rather than on every frame."""
+    from lightflow.app.recording import read_recording
+
+    embedded = read_recording(recording).rig.camera
+    if (embedded.width, embedded.height) != (rig.camera.width, rig.camera.height):
+        raise ConfigError(
+            f"--rig {rig_path}: camera is {rig.camera.width}x{rig.camera.height}, but the "
+            f"recording {recording} holds {embedded.width}x{embedded.height} frames"
+        )
+
