@@ -47,12 +47,12 @@ A first run on a machine also builds the band profile tables and the rig's
 depth table and compiles the pipeline's and the renderer's kernels (numba),
 in this process and a helper process side by side; all of it is cached under
 $XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
-the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches):
-first depth picture after 24 s and the whole demo in 58 s when the other jobs
-left it nearly two cores (46 s of CPU time to the first depth picture), 45-53 s
-and 100-115 s at a load average of 2-4 from other jobs; warm caches, 3.6 s and
-45 s.  Rendering is the bound while streaming (about 1.5 s of CPU time per
-frame); the first and last lines give the times and the CPU time of the run."""
+the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches,
+load average 2-3): first depth picture after 21-25 s (40-44 s of CPU time)
+and the whole demo in 52-63 s; 45-53 s and 100-115 s while other jobs kept
+the load at 2-4; warm caches, 3.6 s and 45 s.  Rendering is the bound while
+streaming (about 1.5 s of CPU time per frame); the first and last lines give
+the times and the CPU time of the run."""
 
 EPILOG = """\
 scenes: boards-wall (default), ball-wall, board, textured-board, tilted-board, ball, fan,
