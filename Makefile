@@ -62,7 +62,7 @@ bench-batch: setup
 EVAL := out/eval
 eval: setup
 	mkdir -p $(EVAL)
-	$(BIN)/lightflow eval --matrix $(EVAL)/matrix --frames 2
+	$(BIN)/lightflow eval --matrix $(EVAL)/matrix --frames 2 --stages
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -237,6 +237,11 @@ def test_matrix_rigs_span_the_geometry_users_build():
     assert {c.exposure_s for c in cases if c.scene == "fan-1ms"} == {0.001}
     assert {c.exposure_s for c in cases if "ball" in c.scene} == {0.005, 0.008}
     assert {c.exposure_s for c in cases if "newspaper" in c.scene} == {0.3}
+    # the first rig again with a camera gamma and a defocus disc (unmodelled physics)
+    physics = {dict(c.sensor).get("camera_gamma", 1.0) for c in cases if c.sensor}
+    assert 2.2 in physics
+    assert any(dict(c.sensor).get("lens_psf") == "disk" for c in cases)
+    assert all(c.rig_name.startswith(f"gen{REPORT_SEEDS[0]}+") for c in cases if c.sensor)
     # a crop sees a point where the full camera does, shifted by the crop's corner
     full = rig_from_dict(generated_rig(REPORT_SEEDS[-1], distorted=True), "gen")
     crop = cropped(full, (800, 600))
