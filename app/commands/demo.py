@@ -24,30 +24,43 @@ Render a built-in moving scene as the camera of a rig would see it (projected
 line patterns blurred by the motion, with sensor noise), reconstruct its depth
 with the same pipeline as `lightflow capture`, and compare with the ground
 truth.  Frames stream: each frame is reconstructed and shown while the next
-ones render.  The default scene is a ball thrown in front of a static wall:
-the ball's blurred lines give depth, the wall's sharp lines are rejected.
+ones render.  The default scene shows two boards moving in depth in opposite
+directions (0.6-0.9 m, 0.6 m/s) in front of a static wall at 1.1 m, exposed
+30 ms: the boards' blurred lines give depth, the wall's sharp lines are
+rejected (cause "static").
 
-With a display the results open in a Rerun viewer; the run is always kept in
-OUT/demo.rrd as well (open it later with `rerun OUT/demo.rrd`) unless
+At the end the demo prints how many frames got depth on the moving objects,
+the median error against the ground truth and the coverage: of the pixels on
+a moving object that every projector lights, the share that got a depth (the
+one definition used by `lightflow eval` and Rerun's green series; the status
+line's "depth on image" is the share of all camera pixels).  With the
+defaults: 36 of 36 frames with depth, median error 13.3 mm (90th percentile
+47.1 mm), coverage 65 % (left board 76 %, right board 50 %).
+
+The colour leak between the red and blue pattern channels is the simulated
+camera's (0.035); --crosstalk auto estimates it from the frames, as capture
+does.  With a display the results open in a Rerun viewer; the run is always
+kept in OUT/demo.rrd as well (open it later with `rerun OUT/demo.rrd`) unless
 --no-save.  The default is 800x600 (--scale 0.5) to keep the demo short.
 
-A first run on a machine also builds the band profile tables (in a helper
-process) and the rig's depth table, and compiles the pipeline's and the
-renderer's kernels (numba); all of it is cached under $XDG_CACHE_HOME/lightflow
-and each step says what it is doing.  Measured with the defaults on a shared
-2-core machine (load average 5-9 from other jobs): warm caches, first depth
-picture after 6 s and the whole demo in 77 s (56 s of CPU time); empty
-caches, first depth picture after 50-90 s (60-80 s of CPU time, most of it
-compiling the pipeline's kernels) and the whole demo in 110-155 s.  Rendering
-is the bound while streaming (1-2 s a frame at 800x600 under that load); the
-first and last lines give the times and the CPU time of the run."""
+A first run on a machine also builds the band profile tables and the rig's
+depth table and compiles the pipeline's and the renderer's kernels (numba),
+in this process and a helper process side by side; all of it is cached under
+$XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
+the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches,
+load average 2-3): first depth picture after 21-25 s (40-44 s of CPU time)
+and the whole demo in 52-63 s; 45-53 s and 100-115 s while other jobs kept
+the load at 2-4; warm caches, 3.6 s and 45 s.  Rendering is the bound while
+streaming (about 1.5 s of CPU time per frame); the first and last lines give
+the times and the CPU time of the run."""
 
 EPILOG = """\
-scenes: ball-wall, board, textured-board, tilted-board, ball, fan, two-balls, and the
-  paper's ball-away, ball-toward (5 ms), diagonal-board, newspaper-board (300 ms), fan-1ms
+scenes: boards-wall (default), ball-wall, board, textured-board, tilted-board, ball, fan,
+  two-balls, and the paper's ball-away, ball-toward (5 ms), diagonal-board,
+  newspaper-board (300 ms), fan-1ms
 examples:
-  lightflow demo                                    # ball in front of a wall, 36 frames
-  lightflow demo --scene fan --frames 30
+  lightflow demo                                    # two boards before a wall, 36 frames
+  lightflow demo --scene ball-wall --crosstalk auto
   lightflow demo --scale 1 --frames 10 --out out/   # full 1600x1200, slower per frame"""
 
 
@@ -59,7 +72,8 @@ def register(subparsers) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--scene", default="ball-wall", help="built-in scene (default ball-wall)")
+    p.add_argument("--scene", default="boards-wall",
+                   help="built-in scene (default boards-wall)")
     p.add_argument("--rig", default="two-projector", metavar="NAME|PATH",
                    help="two-projector, single-projector or a rig file (default two-projector)")
     p.add_argument("--frames", type=int, default=36, metavar="N",
@@ -73,50 +87,82 @@ def register(subparsers) -> None:
     p.add_argument("--no-save", action="store_true",
                    help="do not keep OUT/demo.rrd (needs a viewer to show anything)")
     p.add_argument("--fps", type=float, default=24.0, help="frame rate of the scene (default 24)")
+    p.add_argument("--crosstalk", metavar="auto|LEAK",
+                   help="colour leak between the pattern channels: auto estimates it from the "
+                        "frames, as capture does (default: the simulated camera's, 0.035)")
     p.set_defaults(func=run, stride=4, smoothing=None)
 
 
 class AccuracySink:
-    """Compares each depth map with the renderer's ground truth (moving objects only).
+    """Scores each depth map against the renderer's ground truth, as ``lightflow eval`` does.
 
-    Static surfaces leave no blur, so no depth is expected there; the scores
-    are over the pixels of moving objects (object id >= 2) lit by every projector.
+    Coverage is the one definition of :mod:`lightflow.app.evaluation` (also in
+    eval and Rerun): of the pixels on a moving object (object id >= 2) that
+    every projector lights, the share that got a depth.  Static surfaces leave
+    no blur, so no depth is expected there.  Also counts the frames with depth
+    on the moving objects and the coverage of each named object.
     """
 
-    def __init__(self, n_projectors: int):
-        self.full_mask = (1 << n_projectors) - 1
-        self.errors: list[np.ndarray] = []
-        self.truth_pixels = 0
-        self.estimated = 0
-        self.frames = 0
+    def __init__(self, n_projectors: int, objects: tuple = ()):
+        self.n_projectors = n_projectors
+        self.objects = objects
+        self.per_frame: list = []
+        #: per object id, [target pixels, covered pixels] over the run
+        self.by_object: dict[int, list[int]] = {}
 
     def write(self, result, stats) -> None:
+        from lightflow.app.evaluation import evaluate_frame
+
         truth = result.frame.extras.get("truth")
         if truth is None:
             return
-        self.frames += 1
-        moving = (truth.object_id >= 2) & np.isfinite(truth.depth)
-        moving &= (truth.lit & self.full_mask) == self.full_mask
-        est = moving & np.isfinite(result.depth)
-        self.truth_pixels += int(np.count_nonzero(moving))
-        self.estimated += int(np.count_nonzero(est))
-        self.errors.append(np.abs(result.depth[est] - truth.depth[est]).astype(np.float64))
+        self.per_frame.append(evaluate_frame(result.depth, truth, n_projectors=self.n_projectors))
+        if len(self.objects) > 1:
+            for obj in range(2, 2 + len(self.objects)):
+                # the same definition, scoring one object: the others count as static
+                ids = np.where((truth.object_id >= 2) & (truth.object_id != obj), 1,
+                               truth.object_id).astype(truth.object_id.dtype)  # fmt: skip
+                one = type(truth)(truth.depth, ids, truth.lit, truth.planar)
+                m = evaluate_frame(result.depth, one, n_projectors=self.n_projectors)
+                acc = self.by_object.setdefault(obj, [0, 0])
+                acc[0] += m.n_target
+                acc[1] += m.n_covered
 
     def close(self) -> None:
         """Nothing to flush."""
 
-    def describe(self) -> str:
-        if not self.truth_pixels:
-            return "accuracy: no moving object was lit in these frames"
-        cov = self.estimated / self.truth_pixels
-        err = np.concatenate(self.errors) if self.errors else np.empty(0)
-        if err.size == 0:
-            return f"accuracy: no depth on the moving objects (coverage 0 of {self.frames} frames)"
-        return (
-            f"accuracy against ground truth over {self.frames} frames (moving, lit pixels): "
-            f"median error {np.median(err) * 1e3:.1f} mm, 90th percentile "
-            f"{np.percentile(err, 90) * 1e3:.1f} mm, coverage {100 * cov:.0f}%"
+    @property
+    def frames_with_depth(self) -> int:
+        """Frames in which a moving object got at least one depth."""
+        return sum(1 for m in self.per_frame if m.n_covered > 0)
+
+    def describe(self) -> list[str]:
+        """The accuracy lines printed at the end of the demo."""
+        from lightflow.app.evaluation import pool_metrics
+
+        n = len(self.per_frame)
+        seen = [m for m in self.per_frame if m.n_target > 0]
+        if not seen:
+            return [f"accuracy: no moving object was lit in these {n} frames"]
+        p = pool_metrics(self.per_frame)
+        lines = [f"frames with depth on the moving objects: {self.frames_with_depth} of {n} "
+                 f"({sum(1 for m in seen if m.coverage >= 0.1)} with at least 10 % coverage)"]
+        if not self.frames_with_depth:
+            return lines + ["accuracy: no depth on the moving objects (coverage 0 %)"]
+        parts = []
+        for obj, name in enumerate(self.objects, 2):
+            target, covered = self.by_object.get(obj, (0, 0))
+            if target:
+                parts.append(f"{name} {100 * covered / target:.0f} %")
+        lines.append(
+            f"accuracy against ground truth: median error {p['median_error_m'] * 1e3:.1f} mm "
+            f"(90th percentile {p['p90_error_m'] * 1e3:.1f} mm, median signed "
+            f"{p['median_signed_m'] * 1e3:+.1f} mm); coverage {100 * p['coverage']:.0f} %"
+            + (f" ({', '.join(parts)})" if parts else "")
         )
+        lines.append("  (coverage: of the moving objects' pixels that every projector lights, "
+                     "the share with a depth, as in `lightflow eval` and Rerun)")
+        return lines
 
 
 def open_viewer_or_file(rig, out: Path, want_viewer: bool, save: bool = True):
@@ -218,49 +264,207 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + helpers.ru_utime + helpers.ru_stime
 
 
-def render_ahead(camera, helper, done: threading.Event, failed: list, since) -> None:
+class Helper:
+    """The helper process: half of the band detector's kernels, the profile tables, the renderer.
+
+    The band profile tables run the band detector's row kernels
+    (``sliding_mid``, ``bands_in_row``), which the pipeline needs first too:
+    the helper compiles one while this process compiles the other, numba's
+    on-disk cache hands each to the other process, and the helper builds the
+    tables once this process says (:meth:`go`) that its kernel is cached;
+    compiling them twice would cost about 7 s of CPU time on the way to the
+    first depth picture.  Then it compiles the renderer.  Whatever is cached is
+    loaded.  Its steps arrive as lines on its stdout (read by a thread: no polling).
+    """
+
+    #: argv: rig, scene, "wait" (for a line on stdin before the tables) or "go"
+    SCRIPT = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from lightflow.app.core import bands\n"
+        "rig, scene, wait = sys.argv[1:]\n"
+        "bands.sliding_mid(np.zeros(64), 5, np.zeros((2, 64)))\n"
+        "print('sliding_mid', flush=True)\n"
+        "from lightflow.app.core.profile_model import tables\n"
+        "if wait == 'wait':\n"
+        "    sys.stdin.readline()\n"
+        "tables()\n"
+        "print('tables', flush=True)\n"
+        "from lightflow.app.core.rig import resolve_rig\n"
+        "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
+        "warm_up_renderer(resolve_rig(rig), scene)\n"
+        "print('renderer', flush=True)\n"
+    )
+
+    def __init__(self, argv: list[str], since, on_renderer=None):
+        self.since = since
+        self.on_renderer = on_renderer
+        self.sliding_mid = threading.Event()
+        self.renderer = threading.Event()
+        self.tables = threading.Event()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", self.SCRIPT, *argv],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        self._reader = threading.Thread(target=self._read, name="demo-helper", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            step = line.strip()
+            if step == "sliding_mid":
+                self.sliding_mid.set()
+            elif step == "renderer":
+                print(f"\n      helper: renderer kernels ready after {self.since()}", flush=True)
+                self.renderer.set()
+                if self.on_renderer is not None:
+                    self.on_renderer()
+            elif step == "tables":
+                print(f"\n      helper: band profile tables ready after {self.since()}",
+                      flush=True)  # fmt: skip
+                self.tables.set()
+        self.proc.stdout.close()
+        self.proc.wait()
+        # wake whoever waits: a failed helper leaves its steps to this process
+        for step in (self.sliding_mid, self.renderer, self.tables):
+            step.set()
+        if self.on_renderer is not None:
+            self.on_renderer()
+
+    @property
+    def failed(self) -> bool:
+        """Whether the helper ended with an error."""
+        return self.proc.returncode not in (None, 0)
+
+    def go(self) -> None:
+        """Tell the helper that this process's row kernel is cached: build the tables now."""
+        try:
+            self.proc.stdin.write("go\n")
+            self.proc.stdin.close()
+        except OSError:  # it has already ended; what it left undone is done here
+            pass
+
+    def close(self) -> None:
+        """Stop the helper if it still runs (what it built so far is cached)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+        self._reader.join()
+        try:
+            self.proc.stdin.close()
+        except OSError:  # "go" still buffered for a helper that had ended
+            pass
+
+
+def render_ahead(camera, helper: Helper | None, wake: threading.Event, done: threading.Event,
+                 failed: list) -> None:  # fmt: skip
     """Render frames ahead on one idle-priority thread until ``done`` is set or the scene ends.
 
-    Waits for the helper process first (it compiles the renderer's kernels
-    into numba's cache, and this process is busy compiling the pipeline's).
-    The thread runs at the lowest priority: it uses a core that compilation
+    With a helper, waits for ``wake`` first: set when the helper has compiled
+    the renderer's kernels into numba's cache (this process is busy compiling
+    the pipeline's) or has ended, and with ``done``.  The
+    thread runs at the lowest priority: it uses a core that compilation
     leaves idle and must not slow the compilation down.  An exception is
     appended to ``failed`` for the caller to raise.
     """
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)  # this thread only
         if helper is not None:
-            helper.wait()
-            if helper.returncode != 0:
+            wake.wait()
+            if done.is_set() or helper.failed:
                 return  # the main thread compiles the renderer after the pipeline
-            print(f"\n      helper: profile tables and renderer kernels ready after {since()}",
-                  flush=True)  # fmt: skip
         while not done.is_set() and camera.render_ahead(1, threads=1):
             pass
     except BaseException as exc:  # noqa: BLE001 - handed to the main thread
         failed.append(exc)
 
 
-def renderer_cached() -> bool:
-    """Whether numba's on-disk cache holds the renderer's main kernel."""
-    from lightflow.drivers.sim import render
-
-    pattern = "render.render_exposure_fast-*.nbi"
+def in_numba_cache(module, *names: str) -> bool:
+    """Whether numba's on-disk cache holds a kernel of each name of ``module``."""
     root = os.environ.get("NUMBA_CACHE_DIR")
-    if root:
-        return any(Path(root).rglob(pattern))
-    return any((Path(render.__file__).parent / "__pycache__").glob(pattern))
+    short = module.__name__.rsplit(".", 1)[-1]
+    folders = [Path(root)] if root else [Path(module.__file__).parent / "__pycache__"]
+    for name in names:
+        pattern = f"{short}.{name}-*.nbi"
+        if not any(any(f.rglob(pattern)) for f in folders if f.is_dir()):
+            return False
+    return True
 
 
-#: the helper process: profile tables, then the renderer's kernels (argv: rig, scene)
-HELPER = (
-    "import sys\n"
-    "from lightflow.app.core.profile_model import tables\n"
-    "from lightflow.app.core.rig import resolve_rig\n"
-    "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
-    "tables()\n"
-    "warm_up_renderer(resolve_rig(sys.argv[1]), sys.argv[2])\n"
-)
+class BandStageWarmUp:
+    """Compiles the band stage's kernels as the pipeline calls them, on a striped test image.
+
+    :meth:`measure_row` compiles the detector's row kernel, which the helper
+    process builds the profile tables with (numba's on-disk cache hands it
+    over); :meth:`detect` the rest of the detector and :meth:`rasterise` the
+    slants and the rasterisation onto the analysis grid, meanwhile.  Argument types follow
+    :class:`~lightflow.app.core.pipeline.DepthPipeline`: a mismatch would only
+    compile a kernel once more.
+    """
+
+    def __init__(self, rig, config):
+        from lightflow.app.core import bands as bd
+        from lightflow.app.core.pipeline import MAX_BANDS_PER_ROW
+
+        cam = rig.camera
+        x = np.arange(cam.width)
+        self.image = np.full((cam.height, cam.width, 3), 20, np.uint8)
+        self.image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
+        self.image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
+        b = config.bands
+        self.params = np.array([b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px,
+                                b.min_gap_px, b.vertical_extra], dtype=np.float64)  # fmt: skip
+        self.stride = s = config.stride
+        self.group = max(1, min(b.rows_per_cell, s))  # measured rows per grid cell
+        self.row_y = (np.arange(cam.height // s)[:, None] * s + (s - self.group) // 2
+                      + np.arange(self.group)[None, :]).ravel().astype(np.int64)  # fmt: skip
+        self.cells = (cam.height // s, cam.width // s)
+        self.bands = np.empty((2, len(self.row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS))
+        self.counts = np.empty((2, len(self.row_y)), np.int64)
+
+    def measure_row(self) -> None:
+        """Compile (or load) ``bands_in_row``, the detector's measurement of one row."""
+        from lightflow.app.core import bands as bd
+
+        w = self.image.shape[1]
+        out = np.empty((self.bands.shape[2], self.bands.shape[3]))
+        bd.bands_in_row(np.zeros(w), np.zeros((2, w)), 6.0, 0.3, 1.0, 0.25, out)
+
+    def detect(self) -> None:
+        """Compile (or load) the band detector's kernels."""
+        from lightflow.app.core import bands as bd
+
+        weights = np.zeros((2, 3))
+        weights[0, 0] = weights[1, 2] = 1.0
+        bd.detect_bands(self.image, weights, self.row_y, np.array([61, 61]), 255.0, self.params,
+                        self.bands, self.counts, self.group)  # fmt: skip
+
+    def rasterise(self) -> None:
+        """Compile (or load) the band slants and the rasterisation onto the grid."""
+        from lightflow.app.core import bands as bd
+
+        fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
+        gh, gw = self.cells
+        grids = np.empty((2, len(fields), gh, gw))
+        for p in range(2):
+            bd.band_slants(self.bands[p], self.counts[p], self.row_y)
+            bd.rasterise_cells(self.bands[p], self.counts[p], self.group, self.stride, gw, 0.5,
+                               fields, grids[p])  # fmt: skip
+
+
+def simulated_leak(rig) -> float:
+    """The colour leak between the two pattern channels of the simulated camera.
+
+    The mean of the two directions of :class:`~lightflow.drivers.sim.synthetic.SensorModel`'s
+    crosstalk (red into blue and blue into red): what ``--crosstalk auto``
+    estimates from the frames, known here because the demo's camera is simulated.
+    """
+    from lightflow.app.core.rig import CHANNEL_INDEX
+    from lightflow.drivers.sim.synthetic import SensorModel
+
+    xt = np.asarray(SensorModel().crosstalk)
+    a, b = (CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns)
+    return round(0.5 * float(xt[a, b] + xt[b, a]), 4)
 
 
 def get_scene_checked(name: str):
@@ -271,6 +475,9 @@ def get_scene_checked(name: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from lightflow.app.core import bands as bd
     from lightflow.app.core.depth_model import load_or_build_lut
     from lightflow.app.core.pipeline import DepthPipeline
     from lightflow.app.core.profile_model import prefetch_tables, tables_path
@@ -278,6 +485,7 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.options import close_all, pipeline_config
     from lightflow.app.runner import Runner
     from lightflow.app.status import Progress, StatusLine
+    from lightflow.drivers.sim import render
     from lightflow.drivers.sim.synthetic import SyntheticCamera
 
     start = time.perf_counter()
@@ -297,73 +505,109 @@ def run(args: argparse.Namespace) -> int:
     if args.scale != 1:
         rig = rig.scaled(args.scale)
     cam = rig.camera
-    config = pipeline_config(args)
+    if args.crosstalk == "auto":
+        crosstalk, leak_text = "auto", "estimated from the frames (--crosstalk auto)"
+    else:
+        crosstalk = simulated_leak(rig) if args.crosstalk is None else parse_leak(args.crosstalk)
+        leak_text = (f"{crosstalk:g}" + (", the simulated camera's" if args.crosstalk is None
+                                         else ""))  # fmt: skip
+    config = replace(pipeline_config(args), crosstalk=crosstalk)
     print(f"demo: scene {scene.name} ({scene.description}), {cam.width}x{cam.height} camera"
           f"{f' (--scale {args.scale:g})' if args.scale != 1 else ''}, "
           f"{len(rig.projectors)} projector(s), {args.frames} frames at {args.fps:g} fps "
-          f"({args.frames / args.fps:.1f} s of motion)", flush=True)
-    # A first run on a machine builds tables and compiles kernels (numba, one
-    # core each), all cached.  The pipeline's kernels take longest: this process
-    # compiles them at once, while a helper process builds the profile tables
-    # (which the pipeline needs only half-way through) and then compiles the
-    # renderer; frames are rendered ahead on the core left idle.
+          f"({args.frames / args.fps:.1f} s of motion), exposure {scene.exposure_s * 1e3:g} ms, "
+          f"colour leak {leak_text}", flush=True)  # fmt: skip
+    # A first run on a machine builds tables and compiles kernels (numba, one core
+    # each), all cached.  This process and a helper process compile the band
+    # detector's two row kernels side by side; the helper then builds the band profile
+    # tables with them while this process compiles the rest of the band stage and
+    # builds the depth table, then compiles the rest of the pipeline (which needs the
+    # profile tables) while the helper compiles the renderer.  Frames are rendered
+    # ahead on whatever core is left idle.
     helper = None
-    if tables_path().exists() and renderer_cached():
-        print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
+    done = threading.Event()  # stops the rendering ahead
+    wake = threading.Event()  # the renderer's kernels are cached, or stop waiting for them
+    need_tables = not tables_path().exists()
+    if need_tables or not in_numba_cache(render, "render_exposure_fast", "knot_states"):
+        print("[1/4] helper process: half of the band detector's kernels, the band profile tables "
+              "(what the band detector reports for every sweep, line width and blur), then the "
+              "renderer's kernels; once per machine ...", flush=True)  # fmt: skip
+        helper = Helper([str(args.rig), scene.name, "wait" if need_tables else "go"], since,
+                        on_renderer=wake.set)  # fmt: skip
     else:
-        print("[1/4] helper process: the band profile tables (what the band detector reports "
-              "for every sweep, line width and blur), then the renderer's kernels; once per "
-              "machine ...", flush=True)  # fmt: skip
-        helper = subprocess.Popen(
-            [sys.executable, "-c", HELPER, str(args.rig), scene.name],
-            stdout=subprocess.DEVNULL,
-        )  # fmt: skip
+        print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
     camera = SyntheticCamera(rig, scene.name, frames=args.frames, fps=args.fps)
-    done = threading.Event()
     failed: list[BaseException] = []
-    ahead = threading.Thread(target=render_ahead, args=(camera, helper, done, failed, since),
+    ahead = threading.Thread(target=render_ahead, args=(camera, helper, wake, done, failed),
                              name="render-ahead")  # fmt: skip
     try:
-        print("[2/4] depth table of this rig (once per rig) ...", flush=True)
+        ahead.start()
+        cached = in_numba_cache(bd, "bands_in_row", "sliding_mid")
+        print("[2/4] band detector and rasterisation: "
+              + ("their kernels are in the cache" if cached else "their kernels, on a test image"
+                 + (" (the helper builds the profile tables with the row kernels)" if need_tables
+                    else "") + " ..."), flush=True)  # fmt: skip
+        band_stage = BandStageWarmUp(rig, config)
+        with CompileProgress("      band detector") as compiling:
+            try:
+                band_stage.measure_row()
+            finally:
+                if helper is not None:
+                    helper.go()
+            if helper is not None:
+                helper.sliding_mid.wait()  # compiled there meanwhile (or left to this process)
+            band_stage.detect()
+            band_stage.rasterise()
+        print(f"      {compiling.summary()}; ready after {since()}", flush=True)
+        print("[3/4] depth table of this rig (once per rig) ...", flush=True)
         lut = load_or_build_lut(rig, config.stride, config.depth_range,
                                 Progress("      building the depth table"))  # fmt: skip
         print(f"      ready after {since()}", flush=True)
-        print("[3/4] depth pipeline: its kernels, on a test image"
-              + (" (it waits for the profile tables half-way)" if helper else "") + " ...",
+        print("[4/4] depth pipeline: its other kernels, on a test image"
+              + (" (after the helper's profile tables)" if need_tables else "") + " ...",
               flush=True)  # fmt: skip
-        prefetch_tables()  # the pipeline needs them only once its band kernels are compiled
-        ahead.start()
+        if helper is not None:
+            # one process builds the tables; a failed helper leaves them to this one
+            helper.tables.wait()
+        prefetch_tables()
         with CompileProgress("      pipeline") as compiling:
             try:
                 pipeline = DepthPipeline(rig, config, lut=lut)
                 pipeline.warm_up()
             finally:
                 done.set()
+                wake.set()
                 ahead.join()
         if failed:
             raise failed[0]
         print(f"      {compiling.summary()}; ready after {since()}", flush=True)
         n = camera.frames_ahead
-        print("[4/4] renderer: " + (f"{n} frame{'s' if n > 1 else ''} rendered meanwhile" if n
+        print("      renderer: " + (f"{n} frame{'s' if n > 1 else ''} rendered meanwhile" if n
               else "the first frame ..."), flush=True)  # fmt: skip
+        if helper is not None and not helper.renderer.is_set():
+            print("      (the helper is still compiling the renderer's kernels)", flush=True)
+            helper.renderer.wait()  # set also when it ends: then this process compiles them
         if not camera.frames_ahead:
             with CompileProgress("      renderer") as compiling:
                 camera.render_ahead(1)
             print(f"      {compiling.summary()}; frame 1 rendered after {since()}", flush=True)
     except BaseException:
+        done.set()
+        wake.set()
+        if ahead.is_alive():
+            ahead.join()
         camera.close()
         raise
     finally:
-        if helper is not None and helper.poll() is None:
-            helper.kill()
-            helper.wait()
+        if helper is not None:
+            helper.close()
     out = Path(args.out)
     try:
         rerun_sink, spawned = open_viewer_or_file(rig, out, not args.no_viewer, not args.no_save)
     except BaseException:
         camera.close()
         raise
-    accuracy = AccuracySink(len(rig.projectors))
+    accuracy = AccuracySink(len(rig.projectors), scene.objects)
     sinks = [rerun_sink, accuracy]
     print(f"streaming after {since()}: each frame is rendered with motion blur, then "
           "reconstructed and logged while the next ones render", flush=True)
@@ -392,7 +636,8 @@ def run(args: argparse.Namespace) -> int:
     with camera:
         stats = runner.run(threading.Event())
     status.finish(stats)
-    print(accuracy.describe())
+    for line in accuracy.describe():
+        print(line)
     print(rerun_sink.describe())
     print(f"demo took {time.perf_counter() - start:.1f} s ({cpu_seconds():.0f} s of CPU time; "
           f"load average {os.getloadavg()[0]:.1f})")
@@ -401,3 +646,14 @@ def run(args: argparse.Namespace) -> int:
         viewer = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
         print(f"open it with:  {viewer} {out / 'demo.rrd'}")
     return 130 if runner.interrupted else 0
+
+
+def parse_leak(text: str) -> float:
+    """``--crosstalk``'s number (ConfigError otherwise)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 <= value < 0.5:
+        raise ConfigError(f"--crosstalk: expected auto or a leak of 0 .. 0.5, got {text!r}")
+    return value

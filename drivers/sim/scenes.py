@@ -31,6 +31,10 @@ class Scene:
         Exposure at which the bands are about 10-15 px long (example rigs).
     planar : bool
         Whether the moving object is a plane (plane-fit RMSE applies).
+    period_s : float
+        Time after which the motion repeats.
+    objects : tuple of str
+        Names of the moving objects, for object ids 2, 3, ... (empty: not named).
     """
 
     name: str
@@ -38,6 +42,7 @@ class Scene:
     exposure_s: float
     planar: bool
     period_s: float
+    objects: tuple = ()
 
     def primitives(self, t: float) -> np.ndarray:
         """Primitive rows valid for times near ``t`` (motion inside is analytic)."""
@@ -137,6 +142,25 @@ def _ball_wall(t):
     return np.concatenate([np.stack([wall]), _thrown(t)])
 
 
+def _demo_board(t, obj, x, half, phase):
+    # a board facing the camera, moving along the axis between 0.6 and 0.9 m
+    z, vz = _triangle(t + phase, 0.6, 0.9, BOARD_SPEED)
+    return _rect(obj, 0.85, 0, (x, 0.0, z - vz * t), (0, 0, vz), (1, 0, 0), (0, 1, 0), *half)
+
+
+def _boards_wall(t):
+    # what the demo teaches: two objects moving in depth, one approaching while the
+    # other recedes, in front of a static wall; the boards' blurred lines give depth,
+    # the wall's sharp lines are rejected
+    wall = _row(PRIM_PLANE, 1, 0.8, 0, p=(4, (0, 0, 1.1)), n=(7, (0, 0, -1)))
+    half_period = (0.9 - 0.6) / BOARD_SPEED
+    return np.stack([
+        wall,
+        _demo_board(t, 2, -0.12, (0.12, 0.1), 0.0),
+        _demo_board(t, 3, 0.13, (0.1, 0.1), half_period),
+    ])  # fmt: skip
+
+
 def _two_balls(t):
     return _throws(t, [
         (2, (-0.12, -0.04, 0.7), (0.1, -0.4, 0.55), 0.085),
@@ -190,6 +214,9 @@ SCENES: dict[str, Scene] = {
               THROW_PERIOD),
         Scene("two-balls", "two balls thrown in opposite depth directions", 0.02, False,
               THROW_PERIOD),
+        Scene("boards-wall", "two boards moving in depth in opposite directions, 0.6-0.9 m, "
+              "in front of a static wall at 1.1 m (the demo)", 0.03, True, 1.0,
+              ("left board", "right board")),
     )
 }
 
@@ -206,6 +233,7 @@ _BUILDERS = {
     "fan": _fan,
     "ball-wall": _ball_wall,
     "two-balls": _two_balls,
+    "boards-wall": _boards_wall,
 }
 
 
