@@ -399,11 +399,7 @@ def depth_and_slope(lut: DepthLUT, log_ratio: np.ndarray):
     (numpy.ndarray, numpy.ndarray)
         ``(h, w)`` float32 depth and slope (metres per unit of log ratio).
     """
-    logr = log_ratio.astype(np.float32, copy=False)
-    z = np.empty(logr.shape, np.float32)
-    slope = np.empty(logr.shape, np.float32)
-    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.table, z, slope)
-    return z, slope
+    return _run_lookup(lut, log_ratio, with_slope=True)
 
 
 def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray) -> np.ndarray:
@@ -420,9 +416,13 @@ def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray) -> np.ndarray:
     numpy.ndarray
         ``(h, w)`` float32.
     """
+    return _run_lookup(lut, log_ratio, with_slope=False)
+
+
+def _run_lookup(lut: DepthLUT, log_ratio: np.ndarray, with_slope: bool):
     logr = log_ratio.astype(np.float32, copy=False)
     z = np.empty(logr.shape, np.float32)
+    slope = np.empty(logr.shape if with_slope else (0, 0), np.float32)
     # bands of grid rows on a thread per core (the kernel releases the GIL)
-    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.table, z,
-             np.empty((0, 0), np.float32))  # fmt: skip
-    return z
+    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.table, z, slope)
+    return (z, slope) if with_slope else z
