@@ -471,7 +471,7 @@ def evaluate_recording(
                     from lightflow.drivers.sim.synthetic import SceneRenderer
 
                     renderer = SceneRenderer(rec.rig, get_scene(str(info.get("scene", "?"))))
-                flows = st.true_flows(rec.rig, "", entry.t, rec.exposure_s, renderer)
+                flows = st.true_flows(renderer, entry.t, rec.exposure_s)
             stage_frames.append(st.stage_errors(
                 result.flows_grid, result.log_ratio_grid, result.depth, truth, flows,
                 result.stride, rec.rig.single_projector, result.causes_grid,

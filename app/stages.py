@@ -95,24 +95,15 @@ def _projector_columns(rig: Rig, points: np.ndarray) -> np.ndarray:
     return out.reshape(len(rig.patterns), h, w)
 
 
-def _camera_rays(rig: Rig) -> np.ndarray:
-    cam = rig.camera
-    xs, ys = np.meshgrid(np.arange(cam.width, dtype=np.float64),
-                         np.arange(cam.height, dtype=np.float64))  # fmt: skip
-    pts = np.stack([xs, ys], axis=-1).reshape(-1, 1, 2)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-    xy = cv2.undistortPointsIter(pts, np.asarray(cam.K, np.float64),
-                                 np.asarray(cam.dist, np.float64), None, None, criteria)
-    xy = xy.reshape(cam.height, cam.width, 2)
-    return np.concatenate([xy, np.ones((cam.height, cam.width, 1))], axis=-1)
-
-
-def flows_from_truth(rig: Rig, start, middle, end) -> TrueFlows:
+def flows_from_truth(rig: Rig, rays: np.ndarray, start, middle, end) -> TrueFlows:
     """True sweeps, intervals and flows from the ground truth at three instants.
 
     Parameters
     ----------
     rig : Rig
+    rays : numpy.ndarray
+        ``(H, W, 3)`` camera rays with z = 1, from OpenCV's undistortion (the
+        simulator's own, :attr:`SceneRenderer.rays`).
     start, middle, end : GroundTruth
         Truth at the start, middle and end of the exposure.
 
@@ -120,7 +111,6 @@ def flows_from_truth(rig: Rig, start, middle, end) -> TrueFlows:
     -------
     TrueFlows
     """
-    rays = _camera_rays(rig)
     cols = [_projector_columns(rig, rays * g.depth[..., None].astype(np.float64))
             for g in (start, middle, end)]  # fmt: skip
     # one moving surface at this pixel for the whole exposure
@@ -149,24 +139,18 @@ def flows_from_truth(rig: Rig, start, middle, end) -> TrueFlows:
     return TrueFlows(*maps)
 
 
-def true_flows(rig: Rig, scene: str, t0: float, exposure_s: float, renderer=None) -> TrueFlows:
-    """True flows of one frame of a built-in scene (exposure from ``t0``).
+def true_flows(renderer, t0: float, exposure_s: float) -> TrueFlows:
+    """True flows of one frame (exposure from ``t0``), from the simulator's ground truth.
 
     Parameters
     ----------
-    rig : Rig
-    scene : str
-        Built-in scene name (:mod:`lightflow.drivers.sim.scenes`).
+    renderer : SceneRenderer
+        The scene and rig (:class:`lightflow.drivers.sim.synthetic.SceneRenderer`).
     t0, exposure_s : float
         Start and length of the exposure (s).
-    renderer : SceneRenderer, optional
-        Reused between frames when given.
     """
-    from lightflow.drivers.sim.scenes import get_scene
-    from lightflow.drivers.sim.synthetic import SceneRenderer
-
-    r = renderer or SceneRenderer(rig, get_scene(scene))
-    return flows_from_truth(rig, r.truth(t0), r.truth(t0 + 0.5 * exposure_s),
+    r = renderer
+    return flows_from_truth(r.rig, r.rays, r.truth(t0), r.truth(t0 + 0.5 * exposure_s),
                             r.truth(t0 + exposure_s))  # fmt: skip
 
 

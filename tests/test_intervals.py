@@ -19,7 +19,7 @@ STRIDE = 4
 def _true_grid(rig, scene, t, exposure=0.005):
     """True intervals (2, h, w) and depth (h, w) at the grid cells, from the renderer."""
     renderer = SceneRenderer(rig, get_scene(scene))
-    flows = true_flows(rig, scene, t, exposure, renderer)
+    flows = true_flows(renderer, t, exposure)
     depth = renderer.truth(t + exposure / 2).depth
     ys = np.arange(rig.camera.height // STRIDE) * STRIDE + (STRIDE - 1) // 2
     xs = np.arange(rig.camera.width // STRIDE) * STRIDE + (STRIDE - 1) // 2

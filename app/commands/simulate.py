@@ -269,7 +269,7 @@ def simulate_recording(
         if flows_renderer is not None:
             from lightflow.app.stages import FLOWS_SUFFIX, true_flows
 
-            flows = true_flows(rig, info.name, frame.timestamp, exposure, flows_renderer)
+            flows = true_flows(flows_renderer, frame.timestamp, exposure)
             flows.save(root / TRUTH_DIR / f"{frame.stem}{FLOWS_SUFFIX}")
 
     sensor = SensorModel(bit_depth=bit_depth, camera_gamma=camera_gamma, lens_psf=lens_psf)
