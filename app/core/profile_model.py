@@ -93,6 +93,9 @@ def pixel_value(d, L, w, sigma):
 @nb.njit(cache=False)  # calls into bands.py: numba's cache would not see its changes
 def _simulate_detector(L, w, sigma, phase, out2):
     """Run the real band detector on three identical bands; (m, r) of the middle one."""
+    # a static line (L = 0) is the limit of a tiny sweep: box(L) * box(w) has no area
+    # at L = 0 itself, and the detector then measured noise-free nothing
+    L = max(L, 1e-3)
     gap = 3.0 * w + 8.0 * sigma + 10.0
     B = L + gap
     n = int(3.0 * B + 40.0)
