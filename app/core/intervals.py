@@ -134,10 +134,7 @@ class IntervalModel:
         for p in range(2):  # the sparse pattern of each cell (mostly one pattern)
             if not have[p].any():
                 continue
-            num = cv2.GaussianBlur(lg[p], (0, 0), SMOOTH_CELLS)
-            den = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean = num / den
+            mean = _local_mean(lg[p], have[p])
             # soft: the part beyond the tolerance, so the correction has no step where
             # the disagreement crosses it (a step reads as an outlier to the smoothing)
             soft = np.sign(mean) * np.maximum(np.abs(mean) - DISAGREE_LOG, 0.0)
@@ -176,10 +173,7 @@ class IntervalModel:
         dense pattern shows it above :data:`CURVED`, the surface bends.
         """
         dense = np.where(np.isfinite(intervals[1 - sparse]), intervals[1 - sparse], 0.0)
-        valid = (dense > 0).astype(np.float32)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            b = (cv2.GaussianBlur(dense.astype(np.float32), (0, 0), SMOOTH_CELLS)
-                 / cv2.GaussianBlur(valid, (0, 0), SMOOTH_CELLS))  # fmt: skip
+        b = _local_mean(dense.astype(np.float32), (dense > 0).astype(np.float32))
         h = int(round(sparse_interval / (2 * self.stride)))
         if h < 1 or 2 * h >= b.shape[1]:
             return np.zeros(b.shape, bool)
@@ -187,6 +181,13 @@ class IntervalModel:
         side[:, h:-h] = 0.5 * (b[:, : -2 * h] + b[:, 2 * h :])
         with np.errstate(invalid="ignore"):
             return np.abs(side / b - 1.0) > CURVED
+
+
+def _local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Gaussian mean of ``values`` (0 where ``weights`` is 0) over :data:`SMOOTH_CELLS`."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (cv2.GaussianBlur(values, (0, 0), SMOOTH_CELLS)
+                / cv2.GaussianBlur(weights, (0, 0), SMOOTH_CELLS))  # fmt: skip
 
 
 @nb.njit(cache=True, inline="always")
