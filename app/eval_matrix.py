@@ -45,7 +45,9 @@ CASES = (
     ("two-balls", 0.008),
 )
 #: single-projector cases (exp2 pair)
-SINGLE_CASES = (("board", 0.02), ("diagonal-board", 0.3), ("two-balls", 0.008))
+SINGLE_CASES = (
+    ("board", 0.02), ("diagonal-board", 0.3), ("two-balls", 0.008), ("still-board", 0.02),
+)
 #: physics the reconstruction does not model, rendered on the first rig for a board,
 #: the fan and a ball: (name, simulate options)
 PHYSICS = (

@@ -69,6 +69,12 @@ def add_pipeline_options(p: argparse.ArgumentParser) -> None:
         "--smoothing", type=float, metavar="PX",
         help="sigma of the flow-ratio smoothing in camera pixels (default: the pipeline's)",
     )  # fmt: skip
+    p.add_argument(
+        "--static-depth", choices=("auto", "on", "off"), default="auto",
+        help="single projector: also give depth where the lines stand still, from the ratio "
+        "of the line intervals, which needs no motion ('auto', the default, is on for "
+        "single-projector rigs and off for two projectors, whose depth is in the motion)",
+    )  # fmt: skip
 
 
 def pipeline_config(args: argparse.Namespace):
@@ -77,11 +83,13 @@ def pipeline_config(args: argparse.Namespace):
     from lightflow.app.core.pipeline import PipelineConfig
 
     smoothing = getattr(args, "smoothing", None)
-    if smoothing is None:
-        return PipelineConfig(stride=args.stride)
-    if not smoothing >= 0:
-        raise ConfigError(f"--smoothing: expected a non-negative number of pixels, got {smoothing}")
-    return PipelineConfig(stride=args.stride, flow=FlowParams(smoothing_px=smoothing))
+    flow = {"static_depth": getattr(args, "static_depth", "auto")}
+    if smoothing is not None:
+        if not smoothing >= 0:
+            raise ConfigError(f"--smoothing: expected a non-negative number of pixels, "
+                              f"got {smoothing}")  # fmt: skip
+        flow["smoothing_px"] = smoothing
+    return PipelineConfig(stride=args.stride, flow=FlowParams(**flow))
 
 
 def make_pipeline(rig, args: argparse.Namespace):

@@ -35,6 +35,9 @@ from .profile_model import (
 from .rig import Rig
 from .threads import run_rows
 
+#: values of :attr:`FlowParams.static_depth`
+STATIC_DEPTH_MODES = ("auto", "on", "off")
+
 #: early frames on which the blur model is refitted while its pool of bands fills
 BLUR_EARLY_REFITS = (1, 2, 4, 8)
 
@@ -68,6 +71,11 @@ class FlowParams:
     outlier_sigmas : float
         Pixels whose log ratio is further than this many robust deviations
         from the smoothed field are dropped before the final smoothing.
+    static_depth : str
+        Single projector only: ``"auto"`` or ``"on"`` also gives depth where the
+        lines stand still (the depth is in the ratio of the line intervals,
+        which needs no motion); ``"off"`` only where they move.  Two-projector
+        rigs need motion: ``"on"`` is refused there.
     """
 
     smoothing_px: float = 24.0
@@ -81,6 +89,12 @@ class FlowParams:
     fill_fraction: float = 0.3
     outlier_sigmas: float = 3.0
     blur_refit_frames: int = 30
+    static_depth: str = "auto"
+
+    def __post_init__(self):
+        if self.static_depth not in STATIC_DEPTH_MODES:
+            raise ConfigError(f"static_depth: expected one of {', '.join(STATIC_DEPTH_MODES)}, "
+                              f"got {self.static_depth!r}")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -132,8 +146,8 @@ BLUR_REL_ERROR = 0.1
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, blur_known, sweeps, moving_at, pitch, interval_ratio, banded,
-    sens, why, i0, i1,
+    static_factor, static_margin, blur_known, still_depth, sweeps, moving_at, pitch,
+    interval_ratio, banded, sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
@@ -143,6 +157,8 @@ def _sweeps(
     ``sens[p]``: how much the sweep (index units) changes when the blur sigma is
     off by ``BLUR_REL_ERROR`` (signed: both patterns share one blur model);
     ``why``: a :mod:`.causes` code for cells without sweeps, else ``DEPTH``.
+    With ``still_depth`` (single projector), ``interval_ratio`` is kept on every
+    cell whose intervals the patterns can make, moving or not.
     Cells whose sweep is hidden in the line width (below ``lo_factor * line +
     lo_margin``) or whose bands fill the interval get NaN.  Grid rows ``i0 .. i1``
     only (the kernels of this module run bands of rows on a thread per core).
@@ -231,6 +247,8 @@ def _sweeps(
                 sweeps[p, i, j] = L / B
                 moving_at[p, i, j] = (static_factor * line + static_margin) / B
                 pitch[p, i, j] = P
+            if still_depth:
+                interval_ratio[i, j] = ir  # the depth needs no sweep (see _decide)
             if why[i, j] != cz.DEPTH:
                 for p in range(2):
                     sweeps[p, i, j] = np.nan
@@ -242,12 +260,16 @@ def _sweeps(
 #: valid, where both patterns have bands, then the sweeps squared (two projectors) or
 #: the interval ratio and its square (one projector: the ratio is in the intervals)
 N_STACK = 6
+#: one projector: a seventh channel, where the interval ratio is valid (it may be
+#: without sweeps: lines that stand still)
+N_STACK_SINGLE = 7
 
 
 @nb.njit(cache=True, nogil=True)
 def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
-    """Fill the :data:`N_STACK` channels of ``stack`` (0 where the sweeps are invalid).
+    """Fill the channels of ``stack`` (0 where the sweeps or the interval ratio are invalid).
 
+    :data:`N_STACK` channels for two projectors, :data:`N_STACK_SINGLE` for one.
     Grid rows ``i0 .. i1`` only.
     """
     gw = stack.shape[1]
@@ -260,22 +282,31 @@ def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
                 stack[i, j, 0] = a
                 stack[i, j, 1] = b
                 stack[i, j, 2] = 1.0
-                if single:
-                    ir = interval_ratio[i, j]
-                    stack[i, j, 4] = ir
-                    stack[i, j, 5] = ir * ir
-                else:
+                if not single:
                     stack[i, j, 4] = a * a
                     stack[i, j, 5] = b * b
             else:
-                for c in (0, 1, 2, 4, 5):
+                for c in (0, 1, 2):
                     stack[i, j, c] = 0.0
+                if not single:
+                    stack[i, j, 4] = 0.0
+                    stack[i, j, 5] = 0.0
+            if single:
+                ir = interval_ratio[i, j]
+                if np.isfinite(ir):
+                    stack[i, j, 4] = ir
+                    stack[i, j, 5] = ir * ir
+                    stack[i, j, 6] = 1.0
+                else:
+                    stack[i, j, 4] = 0.0
+                    stack[i, j, 5] = 0.0
+                    stack[i, j, 6] = 0.0
 
 
 @nb.njit(cache=True, nogil=True)
 def _decide(
-    sweeps, blurred, moving_at, pitch, interval_ratio, single, outlier, share, sens, grids,
-    cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, i0, i1,
+    sweeps, blurred, moving_at, pitch, interval_ratio, single, still_depth, outlier, share,
+    sens, grids, cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, i0, i1,
 ):  # fmt: skip
     """Moving test on the averaged sweeps, then the log ratio, the flows (projector px)
     and the log ratio's expected error.
@@ -290,8 +321,12 @@ def _decide(
     The error of the log ratio has a random part, ``lr_var``: the local variance
     of the sweeps over the number of independent bands averaged (cells along a
     row between two bands share them), and a systematic part, ``lr_sys``: a blur
-    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).  Grid rows
-    ``i0 .. i1`` only.
+    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).
+
+    One projector: the log ratio is the cell's interval ratio and its random
+    error the local variance of that ratio.  With ``still_depth`` every cell with
+    an interval ratio gets it; the moving tests then decide only the flows.
+    Grid rows ``i0 .. i1`` only.
     """
     gw = log_ratio.shape[1]
     for i in range(i0, i1):
@@ -303,37 +338,44 @@ def _decide(
             lr_sys[i, j] = np.nan
             den = blurred[i, j, 2]
             both = np.isfinite(sweeps[0, i, j]) and np.isfinite(sweeps[1, i, j])
-            if not (den > 0.0 and both):
-                continue
-            if den < share * blurred[i, j, 3]:
+            moving = den > 0.0 and both
+            if moving and den < share * blurred[i, j, 3]:
                 why[i, j] = cz.STATIC  # sweeps at the floor of what can be measured
-                continue
-            for p in range(2):
-                sm = blurred[i, j, p] / den
-                if not (sm > moving_at[p, i, j]):
-                    why[i, j] = cz.STATIC
-                elif abs(sweeps[p, i, j] - sm) >= outlier * sm and why[i, j] == cz.DEPTH:
-                    why[i, j] = cz.INCONSISTENT
-            if why[i, j] != cz.DEPTH:
-                continue
-            s0 = blurred[i, j, 0] / den
-            s1 = blurred[i, j, 1] / den
-            flows[0, i, j] = s0 * pitch[0, i, j]
-            flows[1, i, j] = s1 * pitch[1, i, j]
+                moving = False
+            if moving:
+                for p in range(2):
+                    sm = blurred[i, j, p] / den
+                    if not (sm > moving_at[p, i, j]):
+                        why[i, j] = cz.STATIC
+                    elif abs(sweeps[p, i, j] - sm) >= outlier * sm and why[i, j] == cz.DEPTH:
+                        why[i, j] = cz.INCONSISTENT
+                moving = why[i, j] == cz.DEPTH
             # independent bands in the kernel: valid cells, of which B / stride share a band
             interval = 0.5 * (grids[0, 1, i, j] + grids[1, 1, i, j])
-            n = max(1.0, cells_per_kernel * den / max(1.0, interval))
-            if single:
-                ir = blurred[i, j, 4] / den
-                log_ratio[i, j] = interval_ratio[i, j]
-                lr_var[i, j] = max(blurred[i, j, 5] / den - ir * ir, 0.0) / n
-                lr_sys[i, j] = 0.0
-            else:
-                log_ratio[i, j] = math.log(s0 / s1)
-                v0 = max(blurred[i, j, 4] / den - s0 * s0, 0.0) / (s0 * s0)
-                v1 = max(blurred[i, j, 5] / den - s1 * s1, 0.0) / (s1 * s1)
-                lr_var[i, j] = (v0 + v1) / n
-                lr_sys[i, j] = abs(sens[0, i, j] / s0 - sens[1, i, j] / s1)
+            if moving:
+                s0 = blurred[i, j, 0] / den
+                s1 = blurred[i, j, 1] / den
+                flows[0, i, j] = s0 * pitch[0, i, j]
+                flows[1, i, j] = s1 * pitch[1, i, j]
+                if not single:
+                    n = max(1.0, cells_per_kernel * den / max(1.0, interval))
+                    log_ratio[i, j] = math.log(s0 / s1)
+                    v0 = max(blurred[i, j, 4] / den - s0 * s0, 0.0) / (s0 * s0)
+                    v1 = max(blurred[i, j, 5] / den - s1 * s1, 0.0) / (s1 * s1)
+                    lr_var[i, j] = (v0 + v1) / n
+                    lr_sys[i, j] = abs(sens[0, i, j] / s0 - sens[1, i, j] / s1)
+                    continue
+            if not single or not (moving or still_depth):
+                continue
+            den_ir = blurred[i, j, 6]
+            if not (den_ir > 0.0 and np.isfinite(interval_ratio[i, j])):
+                continue
+            why[i, j] = cz.DEPTH
+            n = max(1.0, cells_per_kernel * den_ir / max(1.0, interval))
+            ir = blurred[i, j, 4] / den_ir
+            log_ratio[i, j] = interval_ratio[i, j]
+            lr_var[i, j] = max(blurred[i, j, 5] / den_ir - ir * ir, 0.0) / n
+            lr_sys[i, j] = 0.0
 
 
 class FlowModel:
@@ -407,6 +449,7 @@ class FlowModel:
         """
         tab = tables()
         f = self.frames
+        still = self.still_depth(params)
         # the optics do not change: refit on the pooled bands of the recent frames, often
         # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
         if self.refits_at(f, params):
@@ -426,15 +469,15 @@ class FlowModel:
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
-            params.static_margin_px, self._fitted, sweeps, moving_at, pitch, interval_ratio,
-            banded, sens, why,
+            params.static_margin_px, self._fitted, still, sweeps, moving_at, pitch,
+            interval_ratio, banded, sens, why,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
         # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
         # Both patterns, their common mask and their second moments in one blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
-        stack = np.empty((gh, gw, N_STACK), np.float32)
+        stack = np.empty((gh, gw, N_STACK_SINGLE if self.single else N_STACK), np.float32)
         run_rows(_pack, gh, sweeps, banded, interval_ratio, self.single, stack)
         blurred = _gauss(stack, sigma) if sigma > 0 else stack
         log_ratio = np.empty((gh, gw), np.float32)
@@ -445,12 +488,16 @@ class FlowModel:
         # (camera px) it is the number of independent bands averaged
         cells = 4.0 * math.pi * sigma * sigma * self.stride if sigma > 0 else self.stride
         run_rows(
-            _decide, gh, sweeps, blurred, moving_at, pitch, interval_ratio, self.single,
+            _decide, gh, sweeps, blurred, moving_at, pitch, interval_ratio, self.single, still,
             params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio, flows,
             lr_var, lr_sys, why,
         )  # fmt: skip
         self.frames += 1
         return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why)
+
+    def still_depth(self, params: FlowParams) -> bool:
+        """Whether lines that stand still get a depth (one projector, see ``static_depth``)."""
+        return self.single and params.static_depth != "off"
 
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""

@@ -105,6 +105,9 @@ class DepthPipeline:
         self.rig = rig
         self.config = config or PipelineConfig()
         cfg = self.config
+        if cfg.flow.static_depth == "on" and not rig.single_projector:
+            raise ConfigError(f"{rig.source}: static_depth 'on' needs a single projector (exp2 "
+                              f"pair); with two projectors the depth is in the motion")  # fmt: skip
         self.lut = lut or load_or_build_lut(rig, cfg.stride, cfg.depth_range, progress)
         if self.lut.stride != cfg.stride:
             raise ConfigError(f"LUT stride {self.lut.stride} differs from stride {cfg.stride}")

@@ -2,7 +2,8 @@
 
 Each scene is a list of primitive rows for :mod:`lightflow.drivers.sim.render`
 plus a nominal exposure at which its bands are about 10-15 px long with the
-example rigs.  Object id 1 is static background; ids >= 2 move.
+example rigs.  Object id 1 is static background; ids >= 2 are the objects scored (they move,
+but for the still board).
 """
 
 from __future__ import annotations
@@ -98,6 +99,15 @@ def _tilted(t, ang_y_deg=30.0, ang_x_deg=12.0, rate=1.0):
     centre = np.array([0.0, 0.0, 0.75]) + s * direction
     vel = vs * direction
     return np.stack([_rect(2, 0.85, 0, centre - vel * t, vel, e1, e2, 0.28, 0.2)])
+
+
+def _still_board(t):
+    # tilted 20/10 deg like the diagonal board, standing still at 0.8 m: only a
+    # single-projector rig gives it a depth (from its line intervals)
+    board = _tilted(0.0, 20.0, 10.0, rate=SLOW)
+    board[0, 4:7] = (0.02, 0.0, 0.8)
+    board[0, 7:10] = 0.0
+    return board
 
 
 def _ball(centre0, v0, t, obj, radius=0.09):
@@ -205,6 +215,8 @@ SCENES: dict[str, Scene] = {
               0.005, False, THROW_PERIOD),
         Scene("diagonal-board", "board tilted 20/10 deg moving diagonally (sideways and in depth)",
               0.3, True, 1.0 / SLOW),
+        Scene("still-board", "board tilted 20/10 deg standing still at 0.8 m (one projector "
+              "gives it depth from the line intervals)", 0.02, True, 1.0),
         Scene("newspaper-board", "printed (newspaper) board along the axis (paper: 300 ms)",
               0.3, True, 1.0 / SLOW),
         Scene("fan-1ms", "a spinning fan in front of a static wall (paper: 1 ms)", 0.001, False,
@@ -228,6 +240,7 @@ _BUILDERS = {
     "ball-away": _thrown,
     "ball-toward": _toward,
     "diagonal-board": lambda t: _tilted(t, 20.0, 10.0, rate=SLOW),
+    "still-board": _still_board,
     "newspaper-board": lambda t: _board(t, texture=1, speed=BOARD_SPEED * SLOW),
     "fan-1ms": _fan,
     "fan": _fan,
