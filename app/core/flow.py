@@ -551,9 +551,24 @@ def _gauss(img: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.blur(once, (k, k), borderType=cv2.BORDER_REFLECT)
 
 
-def _masked_smooth(planes, mask, sigma, fill_fraction):
-    """Masked smoothing of each float32 ``(h, w)`` plane in ``planes`` over one ``mask``."""
-    den = _gauss(mask.astype(np.float32), sigma)
+def _masked_smooth(planes, mask, sigma, fill_fraction, weights=None):
+    """Masked smoothing of each float32 ``(h, w)`` plane in ``planes`` over one ``mask``.
+
+    With ``weights``, the first plane is a weighted mean (the others stay plain
+    means over the mask); all planes go through one multi-channel blur.
+    """
+    h, w = mask.shape
+    n = len(planes)
+    # channels: the planes (the first times its weight), the weights, the mask
+    stack = np.zeros((h, w, n + 2), np.float32)
+    wt = np.where(mask, weights if weights is not None else np.float32(1.0), np.float32(0.0))
+    stack[..., 0] = np.where(mask, planes[0] * wt, np.float32(0.0))
+    for c, values in enumerate(planes[1:], 1):
+        stack[..., c] = np.where(mask, values, np.float32(0.0))
+    stack[..., n] = wt
+    stack[..., n + 1] = mask
+    blurred = _gauss(stack, sigma)
+    den = blurred[..., n + 1]
     fill = den >= fill_fraction
     if fill_fraction < 1.0:
         # only holes are filled: data on both sides (left and right, or above and
@@ -563,11 +578,11 @@ def _masked_smooth(planes, mask, sigma, fill_fraction):
         fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
     fill |= mask
     den[~fill] = np.nan  # NaN out there, and no division by 0
-    out = []
-    for values in planes:
-        num = _gauss(np.where(mask, values, np.float32(0.0)), sigma)
-        num /= den
-        out.append(num)
+    wden = blurred[..., n]
+    wden[~fill] = np.nan
+    out = [blurred[..., 0] / wden]
+    for c in range(1, n):
+        out.append(blurred[..., c] / den)
     return out
 
 
@@ -601,7 +616,9 @@ def smooth_log_ratio(
         Gaussian sigma (grid px), outlier threshold in robust deviations, and
         the share of valid kernel weight that fills a hole inside the surface.
     variance : numpy.ndarray, optional
-        A per-pixel variance smoothed over the same pixels and kernel.
+        A per-pixel variance: the log ratio becomes an inverse-variance weighted
+        mean (a pixel predicted twice as noisy counts a quarter), and the
+        variance itself is averaged over the same pixels and kernel.
 
     Returns
     -------
@@ -634,5 +651,8 @@ def smooth_log_ratio(
             # a NaN residual (no data, or none around) compares false: those are the NaN pixels
             keep = resid <= outlier_sigmas * mad
     # outliers are replaced by their neighbourhood, pixels without data only inside
-    out = _masked_smooth(planes, keep, sigma, fill_fraction)
+    weights = None
+    if variance is not None:
+        weights = 1.0 / np.maximum(planes[1], np.float32(1e-12))
+    out = _masked_smooth(planes, keep, sigma, fill_fraction, weights)
     return out[0] if variance is None else tuple(out)
