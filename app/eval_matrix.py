@@ -32,7 +32,8 @@ TUNING_SEEDS = (1, 2)
 #: generator seeds of the reported rigs (the last one gets lens distortion)
 REPORT_SEEDS = (2026, 2027, 2028)
 #: (scene, exposure in s): the paper's scenes at its shutter speeds (fan 1 ms, balls 5 and
-#: 8 ms, boards 300 ms), plus our faster boards at 20 ms
+#: 8 ms, boards 300 ms), plus our faster boards at 20 ms, a ball before a static wall
+#: and the demo's two boards before a wall (whose lines must get no depth)
 CASES = (
     ("board", 0.02),
     ("tilted-board", 0.02),
@@ -43,6 +44,8 @@ CASES = (
     ("ball-away", 0.005),
     ("two-balls", 0.005),
     ("two-balls", 0.008),
+    ("ball-wall", 0.005),
+    ("boards-wall", 0.03),
 )
 #: single-projector cases (exp2 pair)
 SINGLE_CASES = (
