@@ -18,7 +18,9 @@ depth error
 off_object
     Fraction of all depth pixels that are not on a moving object (static
     background, or nothing at all): the method measures motion, so these are
-    false detections.
+    false detections.  With one projector and static depth on, the static
+    background is measured too (from its line intervals): depth there is not
+    counted as off the object.
 plane RMSE
     For planar scenes, the paper's metric: a plane is fitted (robustly) to the
     3D points of the estimate on each moving object, and the RMSE of the
@@ -219,6 +221,7 @@ def evaluate_frame(
     depth_std: np.ndarray | None = None,
     causes_grid: np.ndarray | None = None,
     stride: int = 1,
+    background: bool = False,
 ) -> FrameMetrics:
     """Compare one depth map with its ground truth.
 
@@ -239,6 +242,9 @@ def evaluate_frame(
         The pipeline's cause code per grid pixel (grid ``stride``): counted on the
         target pixels.
     stride : int
+    background : bool
+        Whether the pipeline measures the static background (object id 1) too
+        (one projector, static depth): depth there is then not off the object.
 
     Returns
     -------
@@ -253,7 +259,8 @@ def evaluate_frame(
     n_target = int(np.count_nonzero(target))
     n_covered = int(np.count_nonzero(target & has_depth))
     n_depth = int(np.count_nonzero(has_depth))
-    n_off = int(np.count_nonzero(has_depth & ~moving))
+    scored = moving | (truth.object_id == 1) if background else moving
+    n_off = int(np.count_nonzero(has_depth & ~scored))
     on_object = has_depth & moving & np.isfinite(truth.depth)
     errors = (depth[on_object] - truth.depth[on_object]).astype(np.float32)
     med, mean, p90, signed = _error_stats(errors)
@@ -439,6 +446,8 @@ def evaluate_recording(
     pipeline = DepthPipeline(rec.rig, config, progress=lut_progress)
     rays = camera_rays(rec.rig.camera)
     n_proj = len(rec.rig.projectors)
+    # one projector with static depth measures the static background too: not off the object
+    still = pipeline.flow_model.still_depth(config.flow)
     per_frame = []
     stage_frames = []
     renderer = None
@@ -458,7 +467,8 @@ def evaluate_recording(
         frame = Frame(i, entry.t, rec.exposure_s, load_frame(rec, i), entry.stem)
         result = pipeline.process(frame)
         per_frame.append(evaluate_frame(result.depth, truth, rays, n_proj, result.depth_std,
-                                        result.causes_grid, result.stride))  # fmt: skip
+                                        result.causes_grid, result.stride,
+                                        background=still))  # fmt: skip
         if stages:
             from lightflow.app import stages as st
 

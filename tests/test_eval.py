@@ -51,6 +51,9 @@ def test_coverage_and_off_object_counting():
     assert math.isnan(m.plane_rmse_m)  # not planar
     # without n_projectors, "all projectors" is inferred from the bits present
     assert evaluate_frame(depth, truth).n_target == 4
+    # one projector with static depth measures the background too: only (1,3) is off
+    m = evaluate_frame(depth, truth, n_projectors=2, background=True)
+    assert (m.n_depth, m.n_off, m.n_covered) == (6, 1, 3)
 
 
 def test_empty_estimate():
