@@ -265,24 +265,27 @@ def cpu_seconds() -> float:
 
 
 class Helper:
-    """The helper process: half of the band detector's kernels, the profile tables, the renderer.
+    """The helper process: half of the band detector's kernels, the tables, the renderer.
 
-    The band profile tables run the band detector's row kernels
-    (``sliding_mid``, ``bands_in_row``), which the pipeline needs first too:
-    the helper compiles one while this process compiles the other, numba's
-    on-disk cache hands each to the other process, and the helper builds the
-    tables once this process says (:meth:`go`) that its kernel is cached;
-    compiling them twice would cost about 7 s of CPU time on the way to the
-    first depth picture.  Then it compiles the renderer.  Whatever is cached is
-    loaded.  Its steps arrive as lines on its stdout (read by a thread: no polling).
+    It compiles the detector's ``sliding_mid`` while this process compiles
+    ``bands_in_row`` (numba's on-disk cache hands each to the other process),
+    then builds the band profile tables (from the detector's measurements
+    shipped with the sources; without them it runs the detector on every cell,
+    once this process says (:meth:`go`) that its row kernel is cached), then the
+    rig's depth table, then compiles the renderer.  This process meanwhile
+    compiles the rest of the band stage and, once the two tables are cached,
+    the rest of the pipeline: about equal shares of CPU time.  Whatever is
+    cached is loaded.  Its steps arrive as lines on its stdout (read by a
+    thread: no polling).
     """
 
-    #: argv: rig, scene, "wait" (for a line on stdin before the tables) or "go"
+    #: argv: rig, scale, stride, near, far, scene, "wait" (for a line on stdin before
+    #: the tables) or "go"
     SCRIPT = (
         "import sys\n"
         "import numpy as np\n"
         "from lightflow.app.core import bands\n"
-        "rig, scene, wait = sys.argv[1:]\n"
+        "rig, scale, stride, near, far, scene, wait = sys.argv[1:]\n"
         "bands.sliding_mid(np.zeros(64), 5, np.zeros((2, 64)))\n"
         "print('sliding_mid', flush=True)\n"
         "from lightflow.app.core.profile_model import tables\n"
@@ -290,7 +293,12 @@ class Helper:
         "    sys.stdin.readline()\n"
         "tables()\n"
         "print('tables', flush=True)\n"
+        "from lightflow.app.core.depth_model import DepthRange, load_or_build_lut\n"
         "from lightflow.app.core.rig import resolve_rig\n"
+        "r = resolve_rig(rig)\n"
+        "r = r if float(scale) == 1 else r.scaled(float(scale))\n"
+        "load_or_build_lut(r, int(stride), DepthRange(float(near), float(far)))\n"
+        "print('lut', flush=True)\n"
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
@@ -302,6 +310,7 @@ class Helper:
         self.sliding_mid = threading.Event()
         self.renderer = threading.Event()
         self.tables = threading.Event()
+        self.lut = threading.Event()
         self.proc = subprocess.Popen(
             [sys.executable, "-c", self.SCRIPT, *argv],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -323,10 +332,13 @@ class Helper:
                 print(f"\n      helper: band profile tables ready after {self.since()}",
                       flush=True)  # fmt: skip
                 self.tables.set()
+            elif step == "lut":
+                print(f"\n      helper: depth table ready after {self.since()}", flush=True)
+                self.lut.set()
         self.proc.stdout.close()
         self.proc.wait()
         # wake whoever waits: a failed helper leaves its steps to this process
-        for step in (self.sliding_mid, self.renderer, self.tables):
+        for step in (self.sliding_mid, self.renderer, self.tables, self.lut):
             step.set()
         if self.on_renderer is not None:
             self.on_renderer()
@@ -480,7 +492,7 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.core import bands as bd
     from lightflow.app.core.depth_model import load_or_build_lut
     from lightflow.app.core.pipeline import DepthPipeline
-    from lightflow.app.core.profile_model import prefetch_tables, tables_path
+    from lightflow.app.core.profile_model import MEASURED_PATH, prefetch_tables, tables_path
     from lightflow.app.core.rig import resolve_rig
     from lightflow.app.options import close_all, pipeline_config
     from lightflow.app.runner import Runner
@@ -530,9 +542,14 @@ def run(args: argparse.Namespace) -> int:
     need_tables = not tables_path().exists()
     if need_tables or not in_numba_cache(render, "render_exposure_fast", "knot_states"):
         print("[1/4] helper process: half of the band detector's kernels, the band profile tables "
-              "(what the band detector reports for every sweep, line width and blur), then the "
-              "renderer's kernels; once per machine ...", flush=True)  # fmt: skip
-        helper = Helper([str(args.rig), scene.name, "wait" if need_tables else "go"], since,
+              "(what the band detector reports for every sweep, line width and blur), the rig's "
+              "depth table, then the renderer's kernels; once per machine ...",
+              flush=True)  # fmt: skip
+        # the tables run the detector's row kernels only without the shipped measurements
+        wait = need_tables and not MEASURED_PATH.exists()
+        helper = Helper([str(args.rig), str(args.scale), str(config.stride),
+                         str(config.depth_range.near), str(config.depth_range.far), scene.name,
+                         "wait" if wait else "go"], since,
                         on_renderer=wake.set)  # fmt: skip
     else:
         print("[1/4] band profile tables and renderer kernels: found in the cache", flush=True)
@@ -559,7 +576,10 @@ def run(args: argparse.Namespace) -> int:
             band_stage.detect()
             band_stage.rasterise()
         print(f"      {compiling.summary()}; ready after {since()}", flush=True)
-        print("[3/4] depth table of this rig (once per rig) ...", flush=True)
+        print("[3/4] depth table of this rig (once per rig"
+              + ("; the helper builds it" if helper is not None else "") + ") ...", flush=True)
+        if helper is not None:
+            helper.lut.wait()  # then loaded from the cache (built here if the helper failed)
         lut = load_or_build_lut(rig, config.stride, config.depth_range,
                                 Progress("      building the depth table"))  # fmt: skip
         print(f"      ready after {since()}", flush=True)
