@@ -34,8 +34,8 @@ the median error against the ground truth and the coverage: of the pixels on
 a moving object that every projector lights, the share that got a depth (the
 one definition used by `lightflow eval` and Rerun's green series; the status
 line's "depth on image" is the share of all camera pixels).  With the
-defaults: 36 of 36 frames with depth, median error 13.3 mm (90th percentile
-47.1 mm), coverage 65 % (left board 76 %, right board 50 %).
+defaults: 36 of 36 frames with depth, median error 12.9 mm (90th percentile
+48.2 mm), coverage 65 % (left board 76 %, right board 50 %).
 
 The colour leak between the red and blue pattern channels is the simulated
 camera's (0.035); --crosstalk auto estimates it from the frames, as capture
@@ -43,16 +43,16 @@ does.  With a display the results open in a Rerun viewer; the run is always
 kept in OUT/demo.rrd as well (open it later with `rerun OUT/demo.rrd`) unless
 --no-save.  The default is 800x600 (--scale 0.5) to keep the demo short.
 
-A first run on a machine also builds the band profile tables and the rig's
-depth table and compiles the pipeline's and the renderer's kernels (numba),
-in this process and a helper process side by side; all of it is cached under
+A first run on a machine also builds the band profile tables (from the band
+detector's measurements shipped with the sources) and the rig's depth table
+and compiles the pipeline's and the renderer's kernels (numba), in this
+process and a helper process side by side; all of it is cached under
 $XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
 the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches,
-load average 2-3): first depth picture after 21-25 s (40-44 s of CPU time)
-and the whole demo in 52-63 s; 45-53 s and 100-115 s while other jobs kept
-the load at 2-4; warm caches, 3.6 s and 45 s.  Rendering is the bound while
-streaming (about 1.5 s of CPU time per frame); the first and last lines give
-the times and the CPU time of the run."""
+load average 1.1-1.8): first depth picture after 18-20 s (35-38 s of CPU
+time) and the whole demo in 50-52 s; warm caches, 3.6 s and 45 s.
+Rendering is the bound while streaming (about 1.5 s of CPU time per frame);
+the first and last lines give the times and the CPU time of the run."""
 
 EPILOG = """\
 scenes: boards-wall (default), ball-wall, board, textured-board, tilted-board, ball, fan,
