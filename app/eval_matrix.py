@@ -161,53 +161,100 @@ def matrix_cases(crop: tuple[int, int] | None = (800, 600), tuning: bool = False
                              tuple(sorted(options.items())))  # fmt: skip
 
 
-def renderer_version() -> str:
-    """A hash of the simulator's source: recordings of another renderer are rendered anew."""
+def renderer_version(scene: str) -> str:
+    """A hash of the simulator's source and of ``scene``'s motion.
+
+    Recordings of another renderer are rendered anew.  A scene is fingerprinted
+    by its primitives over its period, not by the source of every scene, so
+    adding or editing one scene does not re-render the others.
+    """
     import hashlib
+
+    from lightflow.drivers.sim.scenes import get_scene
 
     sim = Path(__file__).resolve().parent.parent / "drivers" / "sim"
     digest = hashlib.sha256()
-    for name in ("render.py", "rigspec.py", "scenes.py", "synthetic.py"):
+    for name in ("render.py", "rigspec.py", "synthetic.py"):
         path = sim / name
         if path.is_file():
             digest.update(path.read_bytes())
+    sc = get_scene(scene)
+    digest.update(repr(sc).encode())
+    for t in np.linspace(0.0, sc.period_s, 13):
+        digest.update(np.ascontiguousarray(sc.primitives(float(t)), np.float64).tobytes())
     return digest.hexdigest()[:16]
 
 
+#: the blur of each rig (and camera physics) is measured as a user does
+#: (``lightflow rig blur``): on a board held still at three depths
+BLUR_SCENE = "board-steps"
+BLUR_FRAMES = 3
+BLUR_EXPOSURE_S = 0.02
+
+
+def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple, frames: int,
+              fps: float, seed: int, progress, log, label: str) -> Path:
+    """Render ``rec`` unless it holds this rig, scene, exposure and renderer already."""
+    from lightflow.app.commands.simulate import simulate_recording
+    from lightflow.app.evaluation import read_scene_info
+
+    info = read_scene_info(rec) if (rec / "recording.json").exists() else {}
+    marker = rec / ".renderer"
+    version = renderer_version(scene)
+    current = marker.is_file() and marker.read_text() == version
+    rendered_with = {k: v for k, v in (info.get("sensor") or {}).items() if v is not None
+                     and (k, v) not in (("camera_gamma", 1.0), ("lens_psf", "gauss"))}
+    if (info.get("rig_digest") != rig.geometry_digest() or not current
+            or rendered_with != dict(sensor) or info.get("scene") != scene):  # fmt: skip
+        if rec.exists():
+            import shutil
+
+            shutil.rmtree(rec)
+        log(f"{label} rendering {rec.name} ...")
+        simulate_recording(rig, scene, rec, frames=frames, fps=fps, exposure_s=exposure_s,
+                           seed=seed, progress=progress, **dict(sensor))  # fmt: skip
+        marker.write_text(version)
+    return rec
+
+
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
-               progress=None, log=print, stages: bool = False) -> list:
+               progress=None, log=print, stages: bool = False,
+               blur_calibration: bool = True) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
 
     Recordings are kept in ``out/<case>/`` and reused when the rig, the scene, the
-    exposure and the renderer's source match, so a second run only replays.
+    exposure and the renderer's source match, so a second run only replays.  With
+    ``blur_calibration`` each rig (with its camera physics) first gets its blur
+    measured on ``out/<rig>-blur/`` (:data:`BLUR_SCENE`, :func:`measure_blur`),
+    and its cases are scored with that rig file.
     """
-    from lightflow.app.commands.simulate import simulate_recording
-    from lightflow.app.evaluation import evaluate_recording, read_scene_info
+    from lightflow.app.blurcal import measure_blur
+    from lightflow.app.evaluation import evaluate_recording
+    from lightflow.app.recording import read_recording, recording_frames
 
     results = []
     cases = list(matrix_cases(crop, tuning))
-    version = renderer_version()
+    calibrated: dict[str, Rig] = {}
     for n, case in enumerate(cases, 1):
+        label = f"[{n}/{len(cases)}]"
         rec = out / case.name
-        info = read_scene_info(rec) if (rec / "recording.json").exists() else {}
-        marker = rec / ".renderer"
-        current = marker.is_file() and marker.read_text() == version
-        rendered_with = {k: v for k, v in (info.get("sensor") or {}).items() if v is not None
-                         and (k, v) not in (("camera_gamma", 1.0), ("lens_psf", "gauss"))}
-        if (info.get("rig_digest") != case.rig.digest() or not current
-                or rendered_with != dict(case.sensor)):  # fmt: skip
-            if rec.exists():
-                import shutil
-
-                shutil.rmtree(rec)
-            log(f"[{n}/{len(cases)}] rendering {case.name} ...")
-            fps = min(10.0, 0.8 / case.exposure_s)  # the exposure must fit in the frame period
-            simulate_recording(case.rig, case.scene, rec, frames=frames, fps=fps,
-                               exposure_s=case.exposure_s, seed=n, progress=progress,
-                               **dict(case.sensor))  # fmt: skip
-            marker.write_text(version)
-        log(f"[{n}/{len(cases)}] scoring {case.name} ...")
-        results.append((case, evaluate_recording(rec, progress=progress, stages=stages)))
+        fps = min(10.0, 0.8 / case.exposure_s)  # the exposure must fit in the frame period
+        _rendered(rec, case.rig, case.scene, case.exposure_s, case.sensor, frames, fps, n,
+                  progress, log, label)  # fmt: skip
+        rig = None
+        if blur_calibration:
+            if case.rig_name not in calibrated:
+                steps = _rendered(out / f"{case.rig_name}-blur", case.rig, BLUR_SCENE,
+                                  BLUR_EXPOSURE_S, case.sensor, BLUR_FRAMES, 1.0, 0, progress,
+                                  log, label)  # fmt: skip
+                blurs = measure_blur(case.rig, recording_frames(read_recording(steps)))
+                calibrated[case.rig_name] = case.rig.with_blur(
+                    (pb.camera_px2, pb.projector_px2) for pb in blurs)
+                log(f"{label} blur of {case.rig_name}: " + ", ".join(
+                    f"sigma^2 = {pb.camera_px2:.2f} + {pb.projector_px2:.2f} m^2" for pb in blurs))
+            rig = calibrated[case.rig_name]
+        log(f"{label} scoring {case.name} ...")
+        results.append((case, evaluate_recording(rec, rig=rig, progress=progress, stages=stages)))
     return results
 
 

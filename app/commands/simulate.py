@@ -251,7 +251,7 @@ def simulate_recording(
         "fps": fps,
         "seed": seed,
         "planar": info.planar,
-        "rig_digest": rig.digest(),
+        "rig_digest": rig.geometry_digest(),
         "sensor": {"camera_gamma": camera_gamma, "lens_psf": lens_psf,
                    "lens_blur_px": lens_blur_px},
     }

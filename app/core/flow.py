@@ -388,9 +388,16 @@ class FlowModel:
         # the profile tables are loaded (or built once per machine, ~15 s) here, with
         # the depth LUT, not on the first frame of a live capture
         tables()
-        #: per pattern, fitted blur model (a, b): sigma^2 = a + b * magnification^2
+        #: per pattern, blur model (a, b): sigma^2 = a + b * magnification^2, measured
+        #: once on static lines (the rig's ``blur``) or fitted on the moving bands
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
+        measured = [pat.blur for _, pat in rig.patterns]
+        #: whether the rig file gives the blur (then it is never refitted)
+        self.calibrated = all(b is not None for b in measured)
+        if self.calibrated:
+            self.blur = np.array(measured, dtype=np.float64)
+            self._fitted = True
         self._pool: list[list[np.ndarray]] = []
         self.frames = 0
         #: grid stride in camera pixels (set by the pipeline)
@@ -429,6 +436,8 @@ class FlowModel:
 
     def refits_at(self, frame: int, params) -> bool:
         """Whether :meth:`combine` may refit the blur model on its ``frame``-th call."""
+        if self.calibrated:
+            return False
         return (not self._fitted or frame in BLUR_EARLY_REFITS
                 or frame % params.blur_refit_frames == 0)  # fmt: skip
 
@@ -454,6 +463,8 @@ class FlowModel:
         # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
         if self.refits_at(f, params):
             self._refit_blur(grids)
+        elif self.calibrated and f == 0:
+            self._show_blur(grids)
         gh, gw = grids.shape[2:]
         sweeps = np.empty((2, gh, gw), np.float32)
         moving_at = np.empty((2, gh, gw), np.float32)
@@ -499,26 +510,47 @@ class FlowModel:
         """Whether lines that stand still get a depth (one projector, see ``static_depth``)."""
         return self.single and params.static_depth != "off"
 
+    def magnifications(self, grids: np.ndarray) -> np.ndarray:
+        """Per pattern and grid cell, camera px per projector px: the interval over the pitch.
+
+        ``grids`` as in :meth:`combine`; one projector: the pitch at the column
+        that the interval ratio of the two patterns gives.  NaN without intervals.
+        """
+        with np.errstate(invalid="ignore", divide="ignore"):
+            B0, B1 = grids[0, 1], grids[1, 1]
+            if self.single:
+                u = np.interp(np.log(B1 / B0), np.linspace(self._u_lo, self._u_hi, len(self._u_of)),
+                              self._u_of, left=np.nan, right=np.nan)  # fmt: skip
+            out = np.empty((2, *B0.shape))
+            for p, (proj, pat) in enumerate(self.pairs):
+                P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
+                out[p] = grids[p, 1] / P
+        return out
+
+    def _show_blur(self, grids: np.ndarray) -> None:
+        """For display: each pattern's blur sigma at its median magnification."""
+        mags = self.magnifications(grids)
+        for p in range(2):
+            scale = mags[p][np.isfinite(mags[p])]
+            med = float(np.median(scale)) if scale.size else 1.0
+            self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
+
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""
         # every third cell suffices on a large object; a small one (a ball) needs them all
         k = 3 if np.count_nonzero(np.isfinite(grids[0, 0, ::3, ::3])) > 3000 else 1
         sub = grids[:, :, ::k, ::k]
+        mags = self.magnifications(sub)
         with np.errstate(invalid="ignore", divide="ignore"):
-            B0, B1 = sub[0, 1], sub[1, 1]
-            if self.single:
-                u = np.interp(np.log(B1 / B0), np.linspace(self._u_lo, self._u_hi, len(self._u_of)),
-                              self._u_of, left=np.nan, right=np.nan)  # fmt: skip
             ms, rs, lines, scales, slants = [], [], [], [], []
-            for p, (proj, pat) in enumerate(self.pairs):
+            for p, (_, pat) in enumerate(self.pairs):
                 m, B, r, slant = sub[p]
                 # only where the line spacing changes slowly (planes, gentle curves): on
                 # strongly curved parts the edges also carry the change of magnification
                 dB = np.abs(np.gradient(B, axis=1)) / (k * self.stride)
                 m = np.where(dB < 0.1, m, np.nan)
                 slants.append(slant.ravel())
-                P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
-                scale = np.broadcast_to(B / P, m.shape)
+                scale = mags[p]
                 ms.append(m.ravel())
                 rs.append(r.ravel())
                 lines.append(pat.width_px * scale.ravel())
