@@ -140,13 +140,16 @@ BLUR_POOL_FRAMES = 8
 #: relative error of the fitted blur sigma that the uncertainty allows for: a sweep
 #: shorter than the line is read from its ramps, and there it depends on the blur
 BLUR_REL_ERROR = 0.1
+#: the same for a blur measured on still lines (``lightflow rig blur``): within 1-5 % of
+#: the simulator's optics in tests/test_blurcal.py
+CALIBRATED_BLUR_REL_ERROR = 0.05
 
 
 @nb.njit(cache=True, nogil=True)
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, blur_known, still_depth, sweeps, moving_at, pitch,
+    static_factor, static_margin, blur_known, blur_rel_error, still_depth, sweeps, moving_at, pitch,
     interval_ratio, banded, sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
@@ -155,7 +158,7 @@ def _sweeps(
     ``banded``: 1 where both patterns have a band (moving or not), else 0;
     ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0);
     ``sens[p]``: how much the sweep (index units) changes when the blur sigma is
-    off by ``BLUR_REL_ERROR`` (signed: both patterns share one blur model);
+    off by ``blur_rel_error`` (signed: both patterns share one blur model);
     ``why``: a :mod:`.causes` code for cells without sweeps, else ``DEPTH``.
     With ``still_depth`` (single projector), ``interval_ratio`` is kept on every
     cell whose intervals the patterns can make, moving or not.
@@ -207,7 +210,7 @@ def _sweeps(
                     break
                 short = not (m >= m_max or m > line + 4.0 * sigma + 2.0)
                 L = np.nan
-                spread = 0.0  # the sweep's change for a blur larger by BLUR_REL_ERROR
+                spread = 0.0  # the sweep's change for a blur larger by blur_rel_error
                 if m >= m_max:
                     # far beyond line width and blur: the width at half height is the sweep
                     L = m
@@ -219,7 +222,7 @@ def _sweeps(
                     # width and ramp together: a sweep shorter than the line shows in the
                     # ramps, and there it depends on the blur: read it at two blurs
                     for k in range(2):
-                        sg = sigma * (1.0 + k * BLUR_REL_ERROR)
+                        sg = sigma * (1.0 + k * blur_rel_error)
                         v = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sg, line, m, r)
                         if k == 0:
                             L = v
@@ -321,7 +324,7 @@ def _decide(
     The error of the log ratio has a random part, ``lr_var``: the local variance
     of the sweeps over the number of independent bands averaged (cells along a
     row between two bands share them), and a systematic part, ``lr_sys``: a blur
-    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).
+    off by its relative error moves both sweeps at once (``sens``).
 
     One projector: the log ratio is the cell's interval ratio and its random
     error the local variance of that ratio.  With ``still_depth`` every cell with
@@ -395,6 +398,8 @@ class FlowModel:
         measured = [pat.blur for _, pat in rig.patterns]
         #: whether the rig file gives the blur (then it is never refitted)
         self.calibrated = all(b is not None for b in measured)
+        #: relative error of the blur sigma that the uncertainty allows for
+        self.blur_rel_error = CALIBRATED_BLUR_REL_ERROR if self.calibrated else BLUR_REL_ERROR
         if self.calibrated:
             self.blur = np.array(measured, dtype=np.float64)
             self._fitted = True
@@ -480,7 +485,8 @@ class FlowModel:
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
-            params.static_margin_px, self._fitted, still, sweeps, moving_at, pitch,
+            params.static_margin_px, self._fitted, self.blur_rel_error, still, sweeps, moving_at,
+            pitch,
             interval_ratio, banded, sens, why,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
