@@ -29,6 +29,7 @@ from .profile_model import (
     W_STEP,
     fit_blur,
     joint_at,
+    static_blur,
     tables,
     trilinear_at,
 )
@@ -135,6 +136,17 @@ BLUR_FIT_GAIN = 1.25
 
 #: frames whose moving bands are pooled for the blur fit
 BLUR_POOL_FRAMES = 8
+#: frames compared with the one before for lines that stand still (a wall behind a fan):
+#: early ones, which every replay and batch chunk replays in order
+STILL_LINE_FRAMES = (1, 2)
+#: a grid cell's band width and line interval agree this closely between two frames
+#: where its line stands still (camera px)
+STILL_TOLERANCE_PX = 0.1
+#: still-line measurements needed to trust them over the fit on moving bands
+STILL_MIN_LINES = 2000
+#: ... seen over magnifications that span this ratio (else the two parts of the blur
+#: cannot be told apart)
+MIN_STILL_SPAN = 1.15
 
 
 #: relative error of the fitted blur sigma that the uncertainty allows for: a sweep
@@ -400,6 +412,9 @@ class FlowModel:
         self.calibrated = all(b is not None for b in measured)
         #: relative error of the blur sigma that the uncertainty allows for
         self.blur_rel_error = CALIBRATED_BLUR_REL_ERROR if self.calibrated else BLUR_REL_ERROR
+        #: where the blur model comes from: "rig", "still lines", "moving bands" or ""
+        self.blur_source = "rig" if self.calibrated else ""
+        self._prev: np.ndarray | None = None
         if self.calibrated:
             self.blur = np.array(measured, dtype=np.float64)
             self._fitted = True
@@ -441,7 +456,7 @@ class FlowModel:
 
     def refits_at(self, frame: int, params) -> bool:
         """Whether :meth:`combine` may refit the blur model on its ``frame``-th call."""
-        if self.calibrated:
+        if self.blur_source in ("rig", "still lines"):
             return False
         return (not self._fitted or frame in BLUR_EARLY_REFITS
                 or frame % params.blur_refit_frames == 0)  # fmt: skip
@@ -466,6 +481,10 @@ class FlowModel:
         still = self.still_depth(params)
         # the optics do not change: refit on the pooled bands of the recent frames, often
         # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
+        if f in STILL_LINE_FRAMES and self._prev is not None and self.blur_source != "rig":
+            self._blur_from_still_lines(grids)
+        if not self.calibrated and f + 1 in STILL_LINE_FRAMES:
+            self._prev = grids[:, :2].copy()
         if self.refits_at(f, params):
             self._refit_blur(grids)
         elif self.calibrated and f == 0:
@@ -533,6 +552,41 @@ class FlowModel:
                 out[p] = grids[p, 1] / P
         return out
 
+    def _blur_from_still_lines(self, grids: np.ndarray) -> None:
+        """Measure the blur on lines that stood still since the previous frame (a wall).
+
+        Their width is known from the rig, so their ramps give the blur
+        (:func:`static_blur`), far better than the moving bands' fit.  Both
+        patterns share one optics model, as in the fit; two patterns seen at
+        different magnifications on one wall separate its camera and projector
+        parts.  Used when enough lines stood still, over magnifications that
+        differ by :data:`MIN_STILL_SPAN`; else the fit on moving bands stays.
+        """
+        mags = self.magnifications(grids)
+        cols = [[], [], [], [], []]
+        with np.errstate(invalid="ignore"):
+            for p, (_, pat) in enumerate(self.pairs):
+                m, B, r, slant = grids[p]
+                line = pat.width_px * mags[p]
+                still = ((np.abs(m - self._prev[p, 0]) < STILL_TOLERANCE_PX)
+                         & (np.abs(B - self._prev[p, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+                for c, v in zip(cols, (np.where(still, m, np.nan), r, line, mags[p], slant),
+                                strict=True):  # fmt: skip
+                    c.append(v.ravel())
+        m, r, line, scale, slant = (np.concatenate(c) for c in cols)
+        fit = static_blur(m, r, line, scale, slant, min_bands=STILL_MIN_LINES)
+        if fit is None:
+            return
+        seen = scale[np.isfinite(m) & (m < line + 1.0)]
+        lo, hi = np.percentile(seen, [5, 95])
+        if hi < MIN_STILL_SPAN * lo:
+            return
+        self.blur[:] = fit[:2]
+        self._fitted = True
+        self.blur_source = "still lines"
+        self.blur_rel_error = CALIBRATED_BLUR_REL_ERROR
+        self._show_blur(grids)
+
     def _show_blur(self, grids: np.ndarray) -> None:
         """For display: each pattern's blur sigma at its median magnification."""
         mags = self.magnifications(grids)
@@ -575,6 +629,7 @@ class FlowModel:
                 if fitted is not None:
                     self.blur[p] = BLUR_FIT_GAIN * np.asarray(fitted)
                     self._fitted = True
+                    self.blur_source = "moving bands"
                 # for display: the blur at the median magnification
                 med = np.nanmedian(scales[p]) if np.isfinite(scales[p]).any() else 1.0
                 self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
