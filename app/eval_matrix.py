@@ -9,7 +9,8 @@ were developed on (:data:`TUNING_SEEDS`) are never reported; the reported
 rigs (:data:`REPORT_SEEDS`) were drawn after the defaults were fixed.
 
 The first rig is rendered once more with physics the reconstruction does not
-model (:data:`PHYSICS`: a camera gamma, a defocus-disc lens blur).
+model (:data:`PHYSICS`: a camera gamma, a defocus-disc lens blur, a projector
+black level).
 
 Each case renders a few frames at full resolution through a crop of the
 1600x1200 camera (its central ``crop`` pixels: the same pixel size, bands and
@@ -25,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lightflow.app.core.errors import ConfigError
 from lightflow.app.core.rig import Rig, resolve_rig, rig_from_dict
 
 #: generator seeds of rigs that were looked at while developing (never reported)
@@ -51,13 +53,16 @@ CASES = (
 SINGLE_CASES = (
     ("board", 0.02), ("diagonal-board", 0.3), ("two-balls", 0.008), ("still-board", 0.02),
 )
-#: physics the reconstruction does not model, rendered on the first rig for a board,
-#: the fan and a ball: (name, simulate options)
-PHYSICS = (
-    ("gamma2.2", {"camera_gamma": 2.2}),
-    ("disc-blur", {"lens_psf": "disk", "lens_blur_px": 1.0}),
-)
+#: a board, the fan and a ball: the cases of most of :data:`PHYSICS`
 PHYSICS_CASES = (("diagonal-board", 0.3), ("fan-1ms", 0.001), ("ball-toward", 0.005))
+#: physics the reconstruction does not model, rendered on the first rig:
+#: (name, simulate options, (scene, exposure) cases)
+PHYSICS = (
+    ("gamma2.2", {"camera_gamma": 2.2}, PHYSICS_CASES),
+    ("disc-blur", {"lens_psf": "disk", "lens_blur_px": 1.0}, PHYSICS_CASES),
+    # a projector of contrast 1:500 leaks 1/500 of its light where it shows black
+    ("projector-black", {"projector_black": 1 / 500}, (("diagonal-board", 0.3),)),
+)
 CAMERA_SIZE = (1600, 1200)
 
 
@@ -131,7 +136,8 @@ class MatrixCase:
     scene: str
     exposure_s: float
     #: render options for physics the reconstruction does not model (camera gamma,
-    #: lens PSF; see ``simulate_recording``); empty for the plain renderer
+    #: lens PSF, projector response; see ``simulate_recording``); empty for the plain
+    #: renderer
     sensor: tuple = ()
 
     @property
@@ -155,8 +161,8 @@ def matrix_cases(crop: tuple[int, int] | None = (800, 600), tuning: bool = False
     # the first rig again, rendered with physics the reconstruction does not model
     name, rig, _cases = rigs[0]
     seen = cropped(rig, crop) if crop else rig
-    for label, options in PHYSICS:
-        for scene, exposure in PHYSICS_CASES:
+    for label, options, physics_cases in PHYSICS:
+        for scene, exposure in physics_cases:
             yield MatrixCase(f"{name}+{label}", seen, scene, exposure,
                              tuple(sorted(options.items())))  # fmt: skip
 
@@ -192,6 +198,11 @@ BLUR_FRAMES = 3
 BLUR_EXPOSURE_S = 0.02
 
 
+#: render options at their defaults (what a recording without them was rendered with)
+SENSOR_DEFAULTS = (("camera_gamma", 1.0), ("lens_psf", "gauss"), ("projector_gamma", 1.0),
+                   ("projector_black", 0.0))
+
+
 def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple, frames: int,
               fps: float, seed: int, progress, log, label: str) -> Path:
     """Render ``rec`` unless it holds this rig, scene, exposure and renderer already."""
@@ -203,7 +214,7 @@ def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple,
     version = renderer_version(scene)
     current = marker.is_file() and marker.read_text() == version
     rendered_with = {k: v for k, v in (info.get("sensor") or {}).items() if v is not None
-                     and (k, v) not in (("camera_gamma", 1.0), ("lens_psf", "gauss"))}
+                     and (k, v) not in SENSOR_DEFAULTS}
     if (info.get("rig_digest") != rig.geometry_digest() or not current
             or rendered_with != dict(sensor) or info.get("scene") != scene):  # fmt: skip
         if rec.exists():
@@ -219,8 +230,11 @@ def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple,
 
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
                progress=None, log=print, stages: bool = False,
-               blur_calibration: bool = True) -> list:
+               blur_calibration: bool = True, only: tuple[str, ...] = ()) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
+
+    ``only``: shell patterns (``fnmatch``) of case names; when given, just the
+    cases that match one of them (a pattern that matches none is a ``ConfigError``).
 
     Recordings are kept in ``out/<case>/`` and reused when the rig, the scene, the
     exposure and the renderer's source match, so a second run only replays.  With
@@ -234,6 +248,14 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
 
     results = []
     cases = list(matrix_cases(crop, tuning))
+    if only:
+        from fnmatch import fnmatchcase
+
+        for pattern in only:
+            if not any(fnmatchcase(c.name, pattern) for c in cases):
+                raise ConfigError(f"--case {pattern!r}: no case of the matrix matches "
+                                  f"(names like {cases[0].name!r})")
+        cases = [c for c in cases if any(fnmatchcase(c.name, p) for p in only)]
     calibrated: dict[str, Rig] = {}
     for n, case in enumerate(cases, 1):
         label = f"[{n}/{len(cases)}]"
