@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from fnmatch import fnmatchcase
 from pathlib import Path
 
 import numpy as np
@@ -248,17 +249,16 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
 
     results = []
     cases = list(matrix_cases(crop, tuning))
-    if only:
-        from fnmatch import fnmatchcase
-
-        for pattern in only:
-            if not any(fnmatchcase(c.name, pattern) for c in cases):
-                raise ConfigError(f"--case {pattern!r}: no case of the matrix matches "
-                                  f"(names like {cases[0].name!r})")
-        cases = [c for c in cases if any(fnmatchcase(c.name, p) for p in only)]
+    for pattern in only:
+        if not any(fnmatchcase(c.name, pattern) for c in cases):
+            raise ConfigError(f"--case {pattern!r}: no case of the matrix matches "
+                              f"(names like {cases[0].name!r})")
+    # a case keeps its place in the whole matrix (its noise seed) when others are left out
+    chosen = [(n, c) for n, c in enumerate(cases, 1)
+              if not only or any(fnmatchcase(c.name, p) for p in only)]  # fmt: skip
     calibrated: dict[str, Rig] = {}
-    for n, case in enumerate(cases, 1):
-        label = f"[{n}/{len(cases)}]"
+    for k, (n, case) in enumerate(chosen, 1):
+        label = f"[{k}/{len(chosen)}]"
         rec = out / case.name
         fps = min(10.0, 0.8 / case.exposure_s)  # the exposure must fit in the frame period
         _rendered(rec, case.rig, case.scene, case.exposure_s, case.sensor, frames, fps, n,

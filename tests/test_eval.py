@@ -199,6 +199,15 @@ def test_eval_without_ground_truth_is_one_line(tmp_path, capsys):
                    "needs a simulated recording\n")  # fmt: skip
 
 
+def test_matrix_case_filter_names_no_case_in_one_line(tmp_path, capsys):
+    assert cli_main(["eval", "--matrix", str(tmp_path / "m"), "--case", "gen2026-ball-*",
+                     "--case", "no-such-case"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.startswith("lightflow: error: --case 'no-such-case': no case of the matrix "
+                          "matches (names like 'gen2026-board-20ms')") and err.count("\n") == 1
+    assert not list((tmp_path / "m").glob("gen*"))  # nothing rendered
+
+
 def test_bench_stage_table():
     from lightflow.app.commands.bench import stage_table
 
