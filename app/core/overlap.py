@@ -435,8 +435,10 @@ def measure_stretches(rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centr
         return np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (n,)))
 
     out = np.empty((n, N_OUT))
-    _measure_all(rows, row, np.asarray(lo, np.int64), np.asarray(hi, np.int64), vec(B), vec(w),
-                 vec(sigma), vec(bg), vec(prior), vec(centre), params.as_array(), out, 0, n)  # fmt: skip
+    lo = np.asarray(lo, np.int64)
+    hi = np.asarray(hi, np.int64)
+    _measure_all(rows, row, lo, hi, vec(B), vec(w), vec(sigma), vec(bg), vec(prior),
+                 vec(centre), params.as_array(), out, 0, n)  # fmt: skip
     return out
 
 
