@@ -41,11 +41,11 @@ What the stretch alone gives, and what it does not:
     ``n`` up to 2-3 on bright surfaces, not beyond.
   - a coarse prior ``L / B`` (continuity with neighbouring measured sweeps,
     a previous frame, or another pattern): it must lie within
-    ``0.5 - integer_margin`` intervals of the truth.
+    ``0.5 - integer_margin - 2 prior_std`` (0.3) intervals of the truth.
   - the trajectory centre of one line (``centre``): the pulses sit on the
     centres for even ``n`` and between them for odd ``n``, so the parity of
-    ``n`` follows and a reference only needs to be within ``1 - margin``
-    intervals.  The centres are not known from one row of one pattern; they
+    ``n`` follows and a reference only needs to be within
+    ``1 - integer_margin - 2 std`` (0.8 for a prior) intervals.  The centres are not known from one row of one pattern; they
     are an input for a caller that has them.
 
   With no reference, or references that disagree, the stretch is
@@ -116,9 +116,9 @@ class OverlapParams:
     noise_floor: float = 0.5
     max_rel_std: float = 0.004
     max_shape_residual: float = 0.05
-    integer_margin: float = 0.15
+    integer_margin: float = 0.1
     bg_std: float = 1.0
-    prior_std: float = 0.1
+    prior_std: float = 0.05
 
     def as_array(self) -> np.ndarray:
         """The parameters in the order the numba kernels read them."""
