@@ -45,8 +45,9 @@ What the stretch alone gives, and what it does not:
   - the trajectory centre of one line (``centre``): the pulses sit on the
     centres for even ``n`` and between them for odd ``n``, so the parity of
     ``n`` follows and a reference only needs to be within
-    ``1 - integer_margin - 2 std`` (0.8 for a prior) intervals.  The centres are not known from one row of one pattern; they
-    are an input for a caller that has them.
+    ``1 - integer_margin - 2 std`` (0.8 for a prior) intervals.  The
+    centres are not known from one row of one pattern; they are an input for
+    a caller that has them.
 
   With no reference, or references that disagree, the stretch is
   :data:`OV_AMBIGUOUS` (NaN).
