@@ -67,6 +67,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from .threads import run_rows
+
 #: output fields of :func:`measure_stretch` / :func:`measure_stretches`
 (O_SWEEP, O_FRACTION, O_TURNS, O_PULSE, O_STEP, O_MEAN, O_STD, O_NOISE, O_SHAPE,
  O_CODE) = range(10)  # fmt: skip
@@ -136,6 +138,57 @@ def _sinc(x):
 
 
 @nb.njit(cache=True)
+def _cholesky_solve(G, rhs, sol, dinv):
+    """Solve ``G sol = rhs`` (G symmetric positive definite, overwritten by its factor).
+
+    Also writes the diagonal of ``G^-1`` into ``dinv``.  False when ``G`` is not
+    positive definite.  (The systems are 9-25 unknowns: LAPACK's call overhead
+    would dominate.)
+    """
+    P = G.shape[0]
+    for j in range(P):
+        d = G[j, j]
+        for k in range(j):
+            d -= G[j, k] * G[j, k]
+        if not (d > 1e-12 * G[0, 0]):
+            return False
+        d = math.sqrt(d)
+        G[j, j] = d
+        for i in range(j + 1, P):
+            v = G[i, j]
+            for k in range(j):
+                v -= G[i, k] * G[j, k]
+            G[i, j] = v / d
+    # forward and back substitution
+    y = np.empty(P)
+    for i in range(P):
+        v = rhs[i]
+        for k in range(i):
+            v -= G[i, k] * y[k]
+        y[i] = v / G[i, i]
+    for i in range(P - 1, -1, -1):
+        v = y[i]
+        for k in range(i + 1, P):
+            v -= G[k, i] * sol[k]
+        sol[i] = v / G[i, i]
+    # diag(G^-1) = column sums of squares of L^-1
+    Li = np.zeros((P, P))
+    for j in range(P):
+        Li[j, j] = 1.0 / G[j, j]
+        for i in range(j + 1, P):
+            v = 0.0
+            for k in range(j, i):
+                v -= G[i, k] * Li[k, j]
+            Li[i, j] = v / G[i, i]
+    for j in range(P):
+        v = 0.0
+        for i in range(j, P):
+            v += Li[i, j] * Li[i, j]
+        dinv[j] = v
+    return True
+
+
+@nb.njit(cache=True)
 def harmonic_fit(x, lo, hi, B, M, coef, var_c):
     """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
 
@@ -152,38 +205,58 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c):
     """
     N = hi - lo
     P = 2 * M + 1
-    A = np.empty((N, P))
     w = 2.0 * math.pi / B
+    # Gram matrix from the closed-form sums Sc(k) + i Ss(k) = sum_t exp(i k w t),
+    # k = 0 .. 2M (k w is never a multiple of 2 pi: 2M < B): O(M^2), no design matrix
+    Sc = np.empty(2 * M + 1)
+    Ss = np.empty(2 * M + 1)
+    Sc[0] = N
+    Ss[0] = 0.0
+    for k in range(1, 2 * M + 1):
+        th = k * w
+        amp = math.sin(0.5 * N * th) / math.sin(0.5 * th)
+        Sc[k] = amp * math.cos(0.5 * (N - 1) * th)
+        Ss[k] = amp * math.sin(0.5 * (N - 1) * th)
+    G = np.empty((P, P))
+    G[0, 0] = N
+    for a in range(1, M + 1):
+        G[0, 2 * a - 1] = G[2 * a - 1, 0] = Sc[a]
+        G[0, 2 * a] = G[2 * a, 0] = Ss[a]
+        for b in range(1, M + 1):
+            d = abs(a - b)
+            sd = Ss[d] if b >= a else -Ss[d]  # sum sin((b - a) w t)
+            G[2 * a - 1, 2 * b - 1] = 0.5 * (Sc[d] + Sc[a + b])
+            G[2 * a, 2 * b] = 0.5 * (Sc[d] - Sc[a + b])
+            G[2 * a - 1, 2 * b] = 0.5 * (Ss[a + b] + sd)  # sum cos(a w t) sin(b w t)
+            G[2 * b, 2 * a - 1] = G[2 * a - 1, 2 * b]
+    # right-hand side by rotating exp(i w t) harmonic by harmonic
+    rhs = np.zeros(P)
+    sxx = 0.0
+    c1, s1 = math.cos(w), math.sin(w)
+    cr, sr = 1.0, 0.0  # exp(i w t)
     for j in range(N):
-        t = float(j)
-        A[j, 0] = 1.0
+        v = x[lo + j]
+        sxx += v * v
+        rhs[0] += v
+        cm, sm = cr, sr
         for m in range(1, M + 1):
-            A[j, 2 * m - 1] = math.cos(w * m * t)
-            A[j, 2 * m] = math.sin(w * m * t)
-    G = A.T @ A
-    rhs = np.empty(P)
-    for p in range(P):
-        s = 0.0
-        for j in range(N):
-            s += A[j, p] * x[lo + j]
-        rhs[p] = s
-    try:
-        Ginv = np.linalg.inv(G)
-    except Exception:  # singular: numba raises a generic error
+            rhs[2 * m - 1] += v * cm
+            rhs[2 * m] += v * sm
+            cm, sm = cm * cr - sm * sr, sm * cr + cm * sr
+        cr, sr = cr * c1 - sr * s1, sr * c1 + cr * s1
+        if j % 64 == 63:  # keep the rotation on the unit circle
+            cr, sr = math.cos(w * (j + 1)), math.sin(w * (j + 1))
+    sol = np.empty(P)
+    dinv = np.empty(P)
+    if not _cholesky_solve(G, rhs, sol, dinv):
         return np.nan
-    sol = Ginv @ rhs
-    rss = 0.0
-    for j in range(N):
-        r = x[lo + j]
-        for p in range(P):
-            r -= A[j, p] * sol[p]
-        rss += r * r
+    rss = max(sxx - np.dot(sol, rhs), 0.0)
     coef[0] = sol[0]
-    var_c[0] = Ginv[0, 0]
+    var_c[0] = dinv[0]
     for m in range(1, M + 1):
         coef[2 * m - 1] = 0.5 * sol[2 * m - 1]
         coef[2 * m] = -0.5 * sol[2 * m]
-        var_c[m] = 0.125 * (Ginv[2 * m - 1, 2 * m - 1] + Ginv[2 * m, 2 * m])
+        var_c[m] = 0.125 * (dinv[2 * m - 1] + dinv[2 * m])
     return math.sqrt(rss / max(N - P, 1))
 
 
@@ -191,6 +264,24 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c):
 def transfer(m, B, w, sigma):
     """``K_m``: the line box, the pixel box and the blur at harmonic ``m / B``."""
     return _sinc(m * w / B) * _sinc(m / B) * math.exp(-2.0 * (math.pi * sigma * m / B) ** 2)
+
+
+@nb.njit(cache=True)
+def _inv3(a):
+    """Inverse of a symmetric 3x3 matrix by cofactors (NaN when singular)."""
+    inv = np.empty((3, 3))
+    inv[0, 0] = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    inv[0, 1] = a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]
+    inv[0, 2] = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
+    inv[1, 1] = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
+    inv[1, 2] = a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]
+    inv[2, 2] = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    inv[1, 0], inv[2, 0], inv[2, 1] = inv[0, 1], inv[0, 2], inv[1, 2]
+    det = a[0, 0] * inv[0, 0] + a[0, 1] * inv[1, 0] + a[0, 2] * inv[2, 0]
+    if not (abs(det) > 1e-300):
+        inv[:, :] = np.nan
+        return inv
+    return inv / det
 
 
 @nb.njit(cache=True)
@@ -206,11 +297,17 @@ def _pulse_fit(coef, M, B, K, hfx):
     for _it in range(30):
         JtJ[:, :] = 0.0
         Jtr = np.zeros(3)
+        # exp(i th_m) and exp(i pi m f) by rotation, harmonic by harmonic
+        th1 = -2.0 * math.pi * x0 / B
+        c1, s1 = math.cos(th1), math.sin(th1)
+        p1c, p1s = math.cos(math.pi * f), math.sin(math.pi * f)
+        c, s = 1.0, 0.0
+        pc, ps = 1.0, 0.0
         for m in range(1, M + 1):
-            th = -2.0 * math.pi * m * x0 / B
-            c, s = math.cos(th), math.sin(th)
-            S = math.sin(math.pi * m * f) / (math.pi * m)
-            dS = math.cos(math.pi * m * f)
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+            pc, ps = pc * p1c - ps * p1s, ps * p1c + pc * p1s
+            S = ps / (math.pi * m)
+            dS = pc
             km = K[m]
             # model: h K S (c + i s); residual parts
             rr = coef[2 * m - 1] - h * km * S * c
@@ -223,10 +320,10 @@ def _pulse_fit(coef, M, B, K, hfx):
                 Jtr[a] += jr[a] * rr + ji[a] * ri
                 for b in range(3):
                     JtJ[a, b] += jr[a] * jr[b] + ji[a] * ji[b]
-        det = np.linalg.det(JtJ)
-        if not (abs(det) > 0.0):
+        inv = _inv3(JtJ)
+        if not np.isfinite(inv[0, 0]):
             return out
-        step = np.linalg.solve(JtJ, Jtr)
+        step = inv @ Jtr
         h += step[0]
         f += step[1]
         x0 += step[2]
@@ -243,9 +340,8 @@ def _pulse_fit(coef, M, B, K, hfx):
         ri = coef[2 * m] - h * K[m] * S * math.sin(th)
         res += rr * rr + ri * ri
         tot += coef[2 * m - 1] ** 2 + coef[2 * m] ** 2
-    try:
-        inv = np.linalg.inv(JtJ)
-    except Exception:
+    inv = _inv3(JtJ)
+    if not np.isfinite(inv[0, 0]):
         return out
     hfx[0], hfx[1], hfx[2] = h, f, x0
     out[0], out[1], out[2] = inv[0, 0], inv[1, 1], inv[2, 2]
@@ -438,8 +534,9 @@ def measure_stretches(rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centr
     out = np.empty((n, N_OUT))
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
-    _measure_all(rows, row, lo, hi, vec(B), vec(w), vec(sigma), vec(bg), vec(prior),
-                 vec(centre), params.as_array(), out, 0, n)  # fmt: skip
+    # stretches are independent: a band of them per thread (the pipeline's shared pool)
+    run_rows(_measure_all, n, rows, row, lo, hi, vec(B), vec(w), vec(sigma), vec(bg),
+             vec(prior), vec(centre), params.as_array(), out)  # fmt: skip
     return out
 
 
