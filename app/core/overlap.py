@@ -138,6 +138,18 @@ def _sinc(x):
 
 
 @nb.njit(cache=True)
+def chirp_position(t, tc, g):
+    """Position at which lines ``B (1 + g (t - tc))`` apart are ``B`` apart.
+
+    ``tc + ln(1 + g (t - tc)) / g``: its derivative is ``1 / (1 + g (t - tc))``,
+    the local interval's inverse, relative to ``B``.
+    """
+    if g == 0.0:
+        return t
+    return tc + math.log1p(g * (t - tc)) / g
+
+
+@nb.njit(cache=True)
 def _cholesky_solve(G, rhs, sol, dinv):
     """Solve ``G sol = rhs`` (G symmetric positive definite, overwritten by its factor).
 
@@ -189,7 +201,7 @@ def _cholesky_solve(G, rhs, sol, dinv):
 
 
 @nb.njit(cache=True)
-def harmonic_fit(x, lo, hi, B, M, coef, var_c):
+def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
 
     Fits ``a_0 + sum_m a_m cos(2 pi m t / B) + b_m sin(2 pi m t / B)`` with ``t``
@@ -197,6 +209,10 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c):
     ``coef[2m-1], coef[2m] = Re C_m, Im C_m`` with ``C_m = (a_m - i b_m) / 2`` (so
     the series is ``sum_m C_m exp(2 pi i m t / B)``) and ``var_c[m]`` the mean
     variance of ``Re C_m`` and ``Im C_m`` per unit noise variance.
+
+    With ``chirp`` = ``g`` the interval changes along the stretch as
+    ``B (1 + g (t - tc))`` (``tc`` its middle): ``t`` is then replaced by
+    :func:`chirp_position`, in which the lines are ``B`` apart.
 
     Returns
     -------
@@ -206,17 +222,32 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c):
     N = hi - lo
     P = 2 * M + 1
     w = 2.0 * math.pi / B
-    # Gram matrix from the closed-form sums Sc(k) + i Ss(k) = sum_t exp(i k w t),
-    # k = 0 .. 2M (k w is never a multiple of 2 pi: 2M < B): O(M^2), no design matrix
+    tc = 0.5 * (N - 1)
     Sc = np.empty(2 * M + 1)
     Ss = np.empty(2 * M + 1)
     Sc[0] = N
     Ss[0] = 0.0
-    for k in range(1, 2 * M + 1):
-        th = k * w
-        amp = math.sin(0.5 * N * th) / math.sin(0.5 * th)
-        Sc[k] = amp * math.cos(0.5 * (N - 1) * th)
-        Ss[k] = amp * math.sin(0.5 * (N - 1) * th)
+    if chirp == 0.0:
+        # closed-form sums Sc(k) + i Ss(k) = sum_t exp(i k w t), k = 0 .. 2M (k w is
+        # never a multiple of 2 pi: 2M < B): O(M^2), no design matrix
+        for k in range(1, 2 * M + 1):
+            th = k * w
+            amp = math.sin(0.5 * N * th) / math.sin(0.5 * th)
+            Sc[k] = amp * math.cos(0.5 * (N - 1) * th)
+            Ss[k] = amp * math.sin(0.5 * (N - 1) * th)
+    else:
+        # the same sums over the warped positions (products of harmonics are
+        # harmonics at the sum and difference frequencies whatever the positions)
+        Sc[1:] = 0.0
+        Ss[1:] = 0.0
+        for j in range(N):
+            th = w * chirp_position(float(j), tc, chirp)
+            c1, s1 = math.cos(th), math.sin(th)
+            c, s = 1.0, 0.0
+            for k in range(1, 2 * M + 1):
+                c, s = c * c1 - s * s1, s * c1 + c * s1
+                Sc[k] += c
+                Ss[k] += s
     G = np.empty((P, P))
     G[0, 0] = N
     for a in range(1, M + 1):
@@ -238,6 +269,9 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c):
         v = x[lo + j]
         sxx += v * v
         rhs[0] += v
+        if chirp != 0.0:
+            th = w * chirp_position(float(j), tc, chirp)
+            cr, sr = math.cos(th), math.sin(th)
         cm, sm = cr, sr
         for m in range(1, M + 1):
             rhs[2 * m - 1] += v * cm
@@ -350,7 +384,7 @@ def _pulse_fit(coef, M, B, K, hfx):
 
 
 @nb.njit(cache=True)
-def measure_stretch(x, lo, hi, B, w, sigma, bg, prior, centre, params, out):
+def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out):
     """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
 
     Parameters
@@ -360,7 +394,13 @@ def measure_stretch(x, lo, hi, B, w, sigma, bg, prior, centre, params, out):
     lo, hi : int
         The stretch (at least ``min_periods * B`` samples).
     B, w, sigma : float
-        Line interval, line width and blur sigma along the row (camera px).
+        Line interval, line width and blur sigma along the row (camera px), at the
+        stretch's middle.
+    chirp : float
+        Relative change of the interval per pixel along the stretch (``dB/dx / B``;
+        0 for a constant interval): the lines are fitted at their warped positions
+        (:func:`chirp_position`).  The sweep is taken as the same share of the
+        interval all along.
     bg : float
         Background under the bands (signal units), NaN if unknown.
     prior : float
@@ -384,7 +424,7 @@ def measure_stretch(x, lo, hi, B, w, sigma, bg, prior, centre, params, out):
     M = int(min(params[_P_HARM], B / 2.5))
     coef = np.zeros(2 * M + 1)
     var_c = np.zeros(M + 1)
-    noise = harmonic_fit(x, lo, hi, B, M, coef, var_c)
+    noise = harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp)
     out[O_NOISE] = noise
     out[O_CODE] = OV_FLAT
     if not np.isfinite(noise):
@@ -435,9 +475,11 @@ def measure_stretch(x, lo, hi, B, w, sigma, bg, prior, centre, params, out):
     rms_c = math.sqrt(tot / (2 * M))
     misfit = cov[3] * rms_c
     # a pulse centre in row coordinates, nearest to the stretch's middle
+    tc = 0.5 * (N - 1)
+    x0 += B * round((tc - x0) / B)
+    if chirp != 0.0:
+        x0 = tc + math.expm1(chirp * (x0 - tc)) / chirp  # back to row positions
     xc = lo + x0
-    mid = 0.5 * (lo + hi - 1)
-    xc += B * round((mid - xc) / B)
     out[O_PULSE] = xc
     out[O_STD] = B * std_f
     if f <= 2e-4 or f >= 1.0 - 2e-4 or not np.isfinite(std_f):
@@ -496,14 +538,16 @@ def measure_stretch(x, lo, hi, B, w, sigma, bg, prior, centre, params, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def _measure_all(rows, row, lo, hi, B, w, sigma, bg, prior, centre, params, out, k0, k1):
+def _measure_all(rows, row, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out, k0, k1):
     for k in range(k0, k1):
-        measure_stretch(rows[row[k]], lo[k], hi[k], B[k], w[k], sigma[k], bg[k], prior[k],
-                        centre[k], params, out[k])  # fmt: skip
+        measure_stretch(rows[row[k]], lo[k], hi[k], B[k], chirp[k], w[k], sigma[k], bg[k],
+                        prior[k], centre[k], params, out[k])  # fmt: skip
 
 
-def measure_stretches(rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centre=None,
-                      params: OverlapParams = OverlapParams()) -> np.ndarray:  # fmt: skip
+def measure_stretches(
+    rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centre=None, chirp=None,
+    params: OverlapParams = OverlapParams(),
+) -> np.ndarray:  # fmt: skip
     """:func:`measure_stretch` over many stretches (vectorised inputs, one per stretch).
 
     Parameters
@@ -516,6 +560,8 @@ def measure_stretches(rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centr
         Per stretch (or shared): interval, line width, blur (camera px).
     bg, prior, centre : numpy.ndarray, float or None
         Integer-part references (None: unknown everywhere).
+    chirp : numpy.ndarray, float or None
+        Relative change of the interval per pixel (None: constant intervals).
     params : OverlapParams
 
     Returns
@@ -535,8 +581,8 @@ def measure_stretches(rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centr
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
     # stretches are independent: a band of them per thread (the pipeline's shared pool)
-    run_rows(_measure_all, n, rows, row, lo, hi, vec(B), vec(w), vec(sigma), vec(bg),
-             vec(prior), vec(centre), params.as_array(), out)  # fmt: skip
+    run_rows(_measure_all, n, rows, row, lo, hi, vec(B), vec(chirp, 0.0), vec(w), vec(sigma),
+             vec(bg), vec(prior), vec(centre), params.as_array(), out)  # fmt: skip
     return out
 
 
