@@ -572,25 +572,10 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     m, r, line, s2 = m.ravel()[idx], r.ravel()[idx], line.ravel()[idx], scale.ravel()[idx] ** 2
     k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
-    # per band: the ramp mismatch as a function of sigma, and its sign change
-    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
-    res = np.empty((sig.size, m.size))
-    for i, sg in enumerate(sig):
-        L = t.true_length(m, line, np.full_like(m, sg))
-        res[i] = t.ramp(L, line, np.full_like(m, sg)) - r
-    # the predicted ramp grows with sigma: the root is the first sign change to >= 0
-    fin = np.isfinite(res)
-    pos = fin & (res >= 0)
-    first = np.argmax(pos, axis=0)
-    has = pos.any(axis=0) & (first > 0)
-    cols = np.flatnonzero(has)
-    j = first[cols]
-    r0, r1 = res[j - 1, cols], res[j, cols]
-    good = np.isfinite(r0) & (r1 > r0)
-    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    # per band: the sigma at which the sweep its width implies also predicts its ramp
+    cols, sigma = _ramp_sigma(lambda sg: t.ramp(t.true_length(m, line, sg), line, sg) - r)
     if cols.size < min_bands // 2:
         return None
-    sigma = sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
     # only bands whose width decides their sweep at that sigma: for a sweep within
     # the line width the width is the line's, and a smaller sigma would fake a sweep
     L = t.true_length(m[cols], line[cols], sigma)
@@ -599,6 +584,25 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     if cols.size < min_bands // 2:
         return None
     return blur_model(sigma**2, k2[cols], s2[cols])
+
+
+def _ramp_sigma(mismatch):
+    """Per band, the blur sigma where ``mismatch(sigma)`` (predicted minus measured ramp,
+    an array over the bands) crosses zero; returns the bands that have one and it.
+
+    The predicted ramp grows with sigma: the root is the first sign change to >= 0,
+    found on a 0.05 px grid over the tables' sigma axis and interpolated linearly.
+    """
+    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
+    res = np.stack([mismatch(sg) for sg in sig])
+    pos = np.isfinite(res) & (res >= 0)
+    first = np.argmax(pos, axis=0)
+    cols = np.flatnonzero(pos.any(axis=0) & (first > 0))
+    j = first[cols]
+    r0, r1 = res[j - 1, cols], res[j, cols]
+    good = np.isfinite(r0) & (r1 > r0)
+    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    return cols, sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
 
 
 def blur_model(sigma2, k2, s2) -> tuple[float, float]:
@@ -667,17 +671,9 @@ def static_blur(m, r, line, scale, slant=None, min_bands: int = 200):
     m, r, line, s2 = m[idx], r[idx], line[idx], scale[idx] ** 2
     k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(np.ravel(slant)[idx]) ** 2
     t = tables()
-    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
-    res = np.stack([t.ramp(np.zeros_like(m), line, np.full_like(m, sg)) - r for sg in sig])
-    pos = np.isfinite(res) & (res >= 0)
-    first = np.argmax(pos, axis=0)
-    cols = np.flatnonzero(pos.any(axis=0) & (first > 0))
-    j = first[cols]
-    r0, r1 = res[j - 1, cols], res[j, cols]
-    good = np.isfinite(r0) & (r1 > r0)
-    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    # per line: the sigma at which a line of no sweep has the measured ramp
+    cols, sigma = _ramp_sigma(lambda sg: t.ramp(np.zeros_like(m), line, sg) - r)
     if cols.size < min_bands:
         return None
-    sigma = sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
     a, b = blur_model(sigma**2, k2[cols], s2[cols])
     return a, b, int(cols.size)
