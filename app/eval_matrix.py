@@ -9,7 +9,8 @@ were developed on (:data:`TUNING_SEEDS`) are never reported; the reported
 rigs (:data:`REPORT_SEEDS`) were drawn after the defaults were fixed.
 
 The first rig is rendered once more with physics the reconstruction does not
-model (:data:`PHYSICS`: a camera gamma, a defocus-disc lens blur).
+model (:data:`PHYSICS`: a camera gamma, a defocus-disc lens blur, a projector
+black level).
 
 Each case renders a few frames at full resolution through a crop of the
 1600x1200 camera (its central ``crop`` pixels: the same pixel size, bands and
@@ -21,10 +22,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from fnmatch import fnmatchcase
 from pathlib import Path
 
 import numpy as np
 
+from lightflow.app.core.errors import ConfigError
 from lightflow.app.core.rig import Rig, resolve_rig, rig_from_dict
 
 #: generator seeds of rigs that were looked at while developing (never reported)
@@ -51,13 +54,16 @@ CASES = (
 SINGLE_CASES = (
     ("board", 0.02), ("diagonal-board", 0.3), ("two-balls", 0.008), ("still-board", 0.02),
 )
-#: physics the reconstruction does not model, rendered on the first rig for a board,
-#: the fan and a ball: (name, simulate options)
-PHYSICS = (
-    ("gamma2.2", {"camera_gamma": 2.2}),
-    ("disc-blur", {"lens_psf": "disk", "lens_blur_px": 1.0}),
-)
+#: a board, the fan and a ball: the cases of most of :data:`PHYSICS`
 PHYSICS_CASES = (("diagonal-board", 0.3), ("fan-1ms", 0.001), ("ball-toward", 0.005))
+#: physics the reconstruction does not model, rendered on the first rig:
+#: (name, simulate options, (scene, exposure) cases)
+PHYSICS = (
+    ("gamma2.2", {"camera_gamma": 2.2}, PHYSICS_CASES),
+    ("disc-blur", {"lens_psf": "disk", "lens_blur_px": 1.0}, PHYSICS_CASES),
+    # a projector of contrast 1:500 leaks 1/500 of its light where it shows black
+    ("projector-black", {"projector_black": 1 / 500}, (("diagonal-board", 0.3),)),
+)
 CAMERA_SIZE = (1600, 1200)
 
 
@@ -131,7 +137,8 @@ class MatrixCase:
     scene: str
     exposure_s: float
     #: render options for physics the reconstruction does not model (camera gamma,
-    #: lens PSF; see ``simulate_recording``); empty for the plain renderer
+    #: lens PSF, projector response; see ``simulate_recording``); empty for the plain
+    #: renderer
     sensor: tuple = ()
 
     @property
@@ -155,59 +162,121 @@ def matrix_cases(crop: tuple[int, int] | None = (800, 600), tuning: bool = False
     # the first rig again, rendered with physics the reconstruction does not model
     name, rig, _cases = rigs[0]
     seen = cropped(rig, crop) if crop else rig
-    for label, options in PHYSICS:
-        for scene, exposure in PHYSICS_CASES:
+    for label, options, physics_cases in PHYSICS:
+        for scene, exposure in physics_cases:
             yield MatrixCase(f"{name}+{label}", seen, scene, exposure,
                              tuple(sorted(options.items())))  # fmt: skip
 
 
-def renderer_version() -> str:
-    """A hash of the simulator's source: recordings of another renderer are rendered anew."""
+def renderer_version(scene: str) -> str:
+    """A hash of the simulator's source and of ``scene``'s motion.
+
+    Recordings of another renderer are rendered anew.  A scene is fingerprinted
+    by its primitives over its period, not by the source of every scene, so
+    adding or editing one scene does not re-render the others.
+    """
     import hashlib
+
+    from lightflow.drivers.sim.scenes import get_scene
 
     sim = Path(__file__).resolve().parent.parent / "drivers" / "sim"
     digest = hashlib.sha256()
-    for name in ("render.py", "rigspec.py", "scenes.py", "synthetic.py"):
+    for name in ("render.py", "rigspec.py", "synthetic.py"):
         path = sim / name
         if path.is_file():
             digest.update(path.read_bytes())
+    sc = get_scene(scene)
+    digest.update(repr(sc).encode())
+    for t in np.linspace(0.0, sc.period_s, 13):
+        digest.update(np.ascontiguousarray(sc.primitives(float(t)), np.float64).tobytes())
     return digest.hexdigest()[:16]
 
 
+#: the blur of each rig (and camera physics) is measured as a user does
+#: (``lightflow rig blur``): on a board held still at three depths
+BLUR_SCENE = "board-steps"
+BLUR_FRAMES = 3
+BLUR_EXPOSURE_S = 0.02
+
+
+#: render options at their defaults (what a recording without them was rendered with)
+SENSOR_DEFAULTS = (("camera_gamma", 1.0), ("lens_psf", "gauss"), ("projector_gamma", 1.0),
+                   ("projector_black", 0.0))
+
+
+def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple, frames: int,
+              fps: float, seed: int, progress, log, label: str) -> Path:
+    """Render ``rec`` unless it holds this rig, scene, exposure and renderer already."""
+    from lightflow.app.commands.simulate import simulate_recording
+    from lightflow.app.evaluation import read_scene_info
+
+    info = read_scene_info(rec) if (rec / "recording.json").exists() else {}
+    marker = rec / ".renderer"
+    version = renderer_version(scene)
+    current = marker.is_file() and marker.read_text() == version
+    rendered_with = {k: v for k, v in (info.get("sensor") or {}).items() if v is not None
+                     and (k, v) not in SENSOR_DEFAULTS}
+    if (info.get("rig_digest") != rig.geometry_digest() or not current
+            or rendered_with != dict(sensor) or info.get("scene") != scene):  # fmt: skip
+        if rec.exists():
+            import shutil
+
+            shutil.rmtree(rec)
+        log(f"{label} rendering {rec.name} ...")
+        simulate_recording(rig, scene, rec, frames=frames, fps=fps, exposure_s=exposure_s,
+                           seed=seed, progress=progress, **dict(sensor))  # fmt: skip
+        marker.write_text(version)
+    return rec
+
+
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
-               progress=None, log=print, stages: bool = False) -> list:
+               progress=None, log=print, stages: bool = False,
+               blur_calibration: bool = True, only: tuple[str, ...] = ()) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
 
+    ``only``: shell patterns (``fnmatch``) of case names; when given, just the
+    cases that match one of them (a pattern that matches none is a ``ConfigError``).
+
     Recordings are kept in ``out/<case>/`` and reused when the rig, the scene, the
-    exposure and the renderer's source match, so a second run only replays.
+    exposure and the renderer's source match, so a second run only replays.  With
+    ``blur_calibration`` each rig (with its camera physics) first gets its blur
+    measured on ``out/<rig>-blur/`` (:data:`BLUR_SCENE`, :func:`measure_blur`),
+    and its cases are scored with that rig file.
     """
-    from lightflow.app.commands.simulate import simulate_recording
-    from lightflow.app.evaluation import evaluate_recording, read_scene_info
+    from lightflow.app.blurcal import measure_blur
+    from lightflow.app.evaluation import evaluate_recording
+    from lightflow.app.recording import read_recording, recording_frames
 
     results = []
     cases = list(matrix_cases(crop, tuning))
-    version = renderer_version()
-    for n, case in enumerate(cases, 1):
+    for pattern in only:
+        if not any(fnmatchcase(c.name, pattern) for c in cases):
+            raise ConfigError(f"--case {pattern!r}: no case of the matrix matches "
+                              f"(names like {cases[0].name!r})")
+    # a case keeps its place in the whole matrix (its noise seed) when others are left out
+    chosen = [(n, c) for n, c in enumerate(cases, 1)
+              if not only or any(fnmatchcase(c.name, p) for p in only)]  # fmt: skip
+    calibrated: dict[str, Rig] = {}
+    for k, (n, case) in enumerate(chosen, 1):
+        label = f"[{k}/{len(chosen)}]"
         rec = out / case.name
-        info = read_scene_info(rec) if (rec / "recording.json").exists() else {}
-        marker = rec / ".renderer"
-        current = marker.is_file() and marker.read_text() == version
-        rendered_with = {k: v for k, v in (info.get("sensor") or {}).items() if v is not None
-                         and (k, v) not in (("camera_gamma", 1.0), ("lens_psf", "gauss"))}
-        if (info.get("rig_digest") != case.rig.digest() or not current
-                or rendered_with != dict(case.sensor)):  # fmt: skip
-            if rec.exists():
-                import shutil
-
-                shutil.rmtree(rec)
-            log(f"[{n}/{len(cases)}] rendering {case.name} ...")
-            fps = min(10.0, 0.8 / case.exposure_s)  # the exposure must fit in the frame period
-            simulate_recording(case.rig, case.scene, rec, frames=frames, fps=fps,
-                               exposure_s=case.exposure_s, seed=n, progress=progress,
-                               **dict(case.sensor))  # fmt: skip
-            marker.write_text(version)
-        log(f"[{n}/{len(cases)}] scoring {case.name} ...")
-        results.append((case, evaluate_recording(rec, progress=progress, stages=stages)))
+        fps = min(10.0, 0.8 / case.exposure_s)  # the exposure must fit in the frame period
+        _rendered(rec, case.rig, case.scene, case.exposure_s, case.sensor, frames, fps, n,
+                  progress, log, label)  # fmt: skip
+        rig = None
+        if blur_calibration:
+            if case.rig_name not in calibrated:
+                steps = _rendered(out / f"{case.rig_name}-blur", case.rig, BLUR_SCENE,
+                                  BLUR_EXPOSURE_S, case.sensor, BLUR_FRAMES, 1.0, 0, progress,
+                                  log, label)  # fmt: skip
+                blurs = measure_blur(case.rig, recording_frames(read_recording(steps)))
+                calibrated[case.rig_name] = case.rig.with_blur(
+                    (pb.camera_px2, pb.projector_px2) for pb in blurs)
+                log(f"{label} blur of {case.rig_name}: " + ", ".join(
+                    f"sigma^2 = {pb.camera_px2:.2f} + {pb.projector_px2:.2f} m^2" for pb in blurs))
+            rig = calibrated[case.rig_name]
+        log(f"{label} scoring {case.name} ...")
+        results.append((case, evaluate_recording(rec, rig=rig, progress=progress, stages=stages)))
     return results
 
 

@@ -202,6 +202,12 @@ def _parse_entry(entry: Any, where: str, fail: Callable[[str, str], ConfigError]
     return FrameEntry(file, float(t))
 
 
+def recording_frames(recording: Recording):
+    """Every frame of ``recording`` in order, as :class:`Frame` (decoded one at a time)."""
+    for i, entry in enumerate(recording.frames):
+        yield Frame(i, entry.t, recording.exposure_s, load_frame(recording, i), entry.stem)
+
+
 def load_frame(recording: Recording, i: int) -> np.ndarray:
     """Load frame ``i`` as an RGB ``(H, W, 3)`` uint8 or uint16 array.
 

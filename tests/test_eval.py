@@ -199,6 +199,15 @@ def test_eval_without_ground_truth_is_one_line(tmp_path, capsys):
                    "needs a simulated recording\n")  # fmt: skip
 
 
+def test_matrix_case_filter_names_no_case_in_one_line(tmp_path, capsys):
+    assert cli_main(["eval", "--matrix", str(tmp_path / "m"), "--case", "gen2026-ball-*",
+                     "--case", "no-such-case"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.startswith("lightflow: error: --case 'no-such-case': no case of the matrix "
+                          "matches (names like 'gen2026-board-20ms')") and err.count("\n") == 1
+    assert not list((tmp_path / "m").glob("gen*"))  # nothing rendered
+
+
 def test_bench_stage_table():
     from lightflow.app.commands.bench import stage_table
 
@@ -235,10 +244,13 @@ def test_matrix_rigs_span_the_geometry_users_build():
     cases = list(matrix_cases())
     assert {c.scene for c in cases} >= {"board", "diagonal-board", "newspaper-board", "fan-1ms",
                                         "ball-toward", "ball-away", "two-balls"}  # fmt: skip
-    # every scene, but those that only repeat one at another exposure
+    # every scene, but those that only repeat one at another exposure, and the blur
+    # calibration's board (rendered for every rig, not scored)
+    from lightflow.app.eval_matrix import BLUR_SCENE
     from lightflow.drivers.sim.scenes import SCENES
 
-    assert {c.scene for c in cases} == set(SCENES) - {"fan", "ball", "textured-board"}
+    repeats = {"fan", "ball", "textured-board"}
+    assert {c.scene for c in cases} == set(SCENES) - repeats - {BLUR_SCENE}
     assert any("distorted" in c.rig_name for c in cases)
     assert any(c.rig_name == "single-projector" for c in cases)
     assert {c.exposure_s for c in cases if c.scene == "fan-1ms"} == {0.001}

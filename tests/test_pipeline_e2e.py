@@ -115,6 +115,26 @@ def test_still_board_single_projector_gets_depth_from_the_intervals(rig1):
     assert np.isnan(results["off"].depth).all()  # without the mode: static lines, no depth
 
 
+def test_blur_measured_on_the_wall_behind_a_fan(rig2):
+    """The wall's lines stand still from frame to frame: the blur comes from them.
+
+    The simulator's optics: sigma^2 = 0.36 + 0.36 m^2 (camera px, m the magnification).
+    """
+    pipe = DepthPipeline(rig2, PipelineConfig(stride=STRIDE))
+    model = pipe.flow_model
+    with SyntheticCamera(rig2, "fan-1ms", frames=3, seed=0) as cam:
+        for frame in cam.frames():
+            pipe.process(frame)
+            if frame.index == 0:
+                assert model.blur_source == "moving bands"
+    assert model.blur_source == "still lines"
+    for m in (1.0, 2.0):
+        sigma = np.sqrt(model.blur[0, 0] + model.blur[0, 1] * m * m)
+        # measured: 0.86 and 1.43 px against 0.85 and 1.34
+        assert sigma == pytest.approx(np.sqrt(0.36 + 0.36 * m * m), rel=0.1)
+    assert not model.refits_at(30, FlowParams())
+
+
 def test_static_depth_on_is_refused_with_two_projectors(rig2):
     with pytest.raises(ConfigError, match="static_depth"):
         DepthPipeline(rig2, PipelineConfig(stride=STRIDE, flow=FlowParams(static_depth="on")))

@@ -60,6 +60,13 @@ def register(subparsers) -> None:
                    "writes DIR/matrix.md and DIR/matrix.json")
     p.add_argument("--frames", type=int, default=2, metavar="N",
                    help="--matrix: frames per case (default 2)")
+    p.add_argument("--no-blur-calibration", action="store_true",
+                   help="--matrix: score every rig without first measuring its blur on a "
+                   "board held still at three depths (`lightflow rig blur`); the pipeline then "
+                   "fits the blur on the moving bands of each recording")
+    p.add_argument("--case", action="append", default=[], metavar="PATTERN",
+                   help="--matrix: run only the cases whose name matches this shell pattern "
+                   "(repeatable), e.g. 'gen2026+gamma2.2-*'; the table then lists those only")
     p.add_argument("--tuning-rigs", action="store_true",
                    help="--matrix: use the rigs defaults were developed on instead of the "
                    "reported ones")
@@ -208,7 +215,8 @@ def _run_matrix(args: argparse.Namespace) -> int:
 
     results = run_matrix(out, frames=args.frames, tuning=args.tuning_rigs, progress=progress,
                          log=lambda text: print(text, file=sys.stderr, flush=True),
-                         stages=args.stages)  # fmt: skip
+                         stages=args.stages, only=tuple(args.case),
+                         blur_calibration=not args.no_blur_calibration)  # fmt: skip
     lines = format_matrix(results)
     for line in lines:
         print(line)

@@ -1,4 +1,7 @@
-"""``lightflow rig check RIG``: can this rig measure depth, and how well?"""
+"""``lightflow rig check RIG``: can this rig measure depth, and how well?
+
+``lightflow rig blur REC... --out RIG``: measure each pattern's blur on still lines.
+"""
 
 from __future__ import annotations
 
@@ -36,6 +39,32 @@ EPILOG = """\
 examples:
   lightflow rig check rig.json
   lightflow rig check rig.json --out rigcheck/ --depths 0.4 0.6 0.8"""
+
+
+BLUR_DESCRIPTION = """\
+Measure how blurred each pattern's lines are in the camera, once per rig, and
+write it into the rig file (each pattern's "blur").  Fast objects (a fan at
+1 ms, a ball at 5 ms) move their lines less than the lines' own width; their
+sweep then shows only in the edges of the band, and reading it needs the blur.
+Without this measurement the pipeline fits the blur on the moving bands of the
+first frames of every run, which is noisier and biased on short bands.
+
+Record still surfaces lit by the patterns (a board held still, or a wall), at
+two or three distances across the working range: the camera's part of the
+blur is fixed in camera pixels, the projector's defocus in projector pixels,
+and the distances tell them apart.  Any exposure will do.
+
+Prints per pattern the two parts, the blur at a few magnifications and how
+many line measurements were used.  Exit status 2 with one line when a
+recording shows too few still lines."""
+
+BLUR_EPILOG = """\
+examples:
+  lightflow capture --camera aravis:CAM --rig rig.json --record still-55cm --frames 1
+  (move the board, repeat at 75 cm and 1 m)
+  lightflow rig blur still-55cm still-75cm still-1m --out rig-blur.json
+  lightflow simulate --scene board-steps --fps 1 --frames 3 --out steps
+  lightflow rig blur steps --out rig-blur.json"""
 
 
 def register(subparsers) -> None:
@@ -80,6 +109,20 @@ def register(subparsers) -> None:
         help="check every PX-th camera row and column (default: %(default)s)",
     )  # fmt: skip
     c.set_defaults(func=run)
+    b = sub.add_parser(
+        "blur",
+        help="measure the blur of each pattern's lines on recordings of still surfaces",
+        description=BLUR_DESCRIPTION,
+        epilog=BLUR_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    b.add_argument("recordings", metavar="REC", nargs="+",
+                   help="recording folders of still surfaces (lines that do not move)")
+    b.add_argument("--rig", metavar="RIG",
+                   help="rig file or example rig name (default: the rig the recording embeds)")
+    b.add_argument("--out", metavar="RIG_OUT", required=True,
+                   help="where to write the rig with the measured blur (rig.json)")
+    b.set_defaults(func=run_blur)
 
 
 def report_lines(report: RigReport) -> list[str]:
@@ -121,6 +164,35 @@ def report_lines(report: RigReport) -> list[str]:
         "verdict: " + ("usable" if report.usable else f"degenerate: {report.problem}"),
     ]
     return lines
+
+
+def run_blur(args: argparse.Namespace) -> int:
+    from lightflow.app.blurcal import MIN_MAGNIFICATION_SPAN, measure_blur
+    from lightflow.app.core.rig import save_rig
+    from lightflow.app.recording import read_recording, recording_frames
+
+    rig = resolve_rig(args.rig) if args.rig else None
+    recs = [read_recording(path, rig) for path in args.recordings]
+    rig = rig or recs[0].rig
+    for path, rec in zip(args.recordings, recs, strict=True):
+        if rec.rig.geometry_digest() != rig.geometry_digest():
+            raise ConfigError(f"{path}: its rig differs from {recs[0].rig.source}: give --rig")
+    frames = (frame for rec in recs for frame in recording_frames(rec))
+    blurs = measure_blur(rig, frames)
+    for i, ((proj, pat), pb) in enumerate(zip(rig.patterns, blurs, strict=True), 1):
+        lo, hi = pb.magnification
+        print(f"pattern {i} ({pat.channel}, projector {proj.name}): blur sigma^2 = "
+              f"{pb.camera_px2:.3f} px^2 (camera) + {pb.projector_px2:.3f} x m^2 (projector "
+              f"defocus); sigma {pb.sigma_px(lo):.2f} px at m = {lo:.2f}, {pb.sigma_px(hi):.2f} px "
+              f"at m = {hi:.2f}; {pb.lines} line measurements")  # fmt: skip
+        if hi < MIN_MAGNIFICATION_SPAN * lo:
+            print(f"WARNING pattern {i}: all lines were seen at about one magnification "
+                  f"({lo:.2f}-{hi:.2f}): record still surfaces at other distances too, "
+                  f"or the blur away from this one is a guess")  # fmt: skip
+    out = rig.with_blur((pb.camera_px2, pb.projector_px2) for pb in blurs)
+    save_rig(out, args.out)
+    print(f"wrote {args.out}: the rig with each pattern's measured blur")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

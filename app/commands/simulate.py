@@ -136,6 +136,22 @@ def register(subparsers) -> None:
         help="camera response: DN = 255 (signal / 255) ** (1 / G) (default: 1, linear)",
     )
     p.add_argument(
+        "--projector-gamma",
+        type=float,
+        default=1.0,
+        metavar="G",
+        help="projector response to the patterns' levels: level v emits (v / 255) ** G "
+        "(default: 1; the rig format's 0/255 lines are unchanged by it)",
+    )
+    p.add_argument(
+        "--projector-black",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="light a projector leaks for level 0, as a fraction of its full light "
+        "(a contrast of 1:500 is 0.002) (default: 0)",
+    )
+    p.add_argument(
         "--lens-psf",
         choices=("gauss", "disk"),
         default="gauss",
@@ -188,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         rig, args.scene, args.out, frames=args.frames, fps=args.fps, exposure_s=args.exposure,
         seed=args.seed, bit_depth=args.bit_depth, progress=_progress,
         camera_gamma=args.camera_gamma, lens_psf=args.lens_psf, lens_blur_px=args.lens_blur,
+        projector_gamma=args.projector_gamma, projector_black=args.projector_black,
         truth_flows=args.truth_flows,
     )  # fmt: skip
 
@@ -206,12 +223,15 @@ def simulate_recording(
     camera_gamma: float = 1.0,
     lens_psf: str = "gauss",
     lens_blur_px: float | None = None,
+    projector_gamma: float = 1.0,
+    projector_black: float = 0.0,
     truth_flows: bool = False,
 ) -> int:
     """Render ``frames`` frames of ``scene`` into the recording folder ``out``, with truth.
 
-    ``camera_gamma``, ``lens_psf`` and ``lens_blur_px`` select physics the
-    reconstruction does not model (see :class:`~lightflow.drivers.sim.synthetic.SensorModel`).
+    ``camera_gamma``, ``lens_psf``, ``lens_blur_px``, ``projector_gamma`` and
+    ``projector_black`` select physics the reconstruction does not model
+    (see :class:`~lightflow.drivers.sim.synthetic.SensorModel`).
     ``truth_flows`` also writes each frame's true sweeps, line intervals and flows
     as ``ground_truth/<frame>_flows.npz`` (:class:`lightflow.app.stages.TrueFlows`).
     Returns the exit status (0).
@@ -236,6 +256,13 @@ def simulate_recording(
         )
     if not (math.isfinite(camera_gamma) and 0.2 <= camera_gamma <= 5):
         raise ConfigError(f"--camera-gamma: expected 0.2 .. 5, got {camera_gamma:g}")
+    if not (math.isfinite(projector_gamma) and 0.2 <= projector_gamma <= 5):
+        raise ConfigError(f"--projector-gamma: expected 0.2 .. 5, got {projector_gamma:g}")
+    if not (math.isfinite(projector_black) and 0 <= projector_black <= 0.1):
+        raise ConfigError(
+            f"--projector-black: expected 0 .. 0.1 (a contrast of at least 1:10), "
+            f"got {projector_black:g}"
+        )
     if lens_blur_px is not None and not (math.isfinite(lens_blur_px) and 0 <= lens_blur_px <= 10):
         raise ConfigError(f"--lens-blur: expected 0 .. 10 px, got {lens_blur_px:g}")
     out = Path(out)
@@ -251,9 +278,10 @@ def simulate_recording(
         "fps": fps,
         "seed": seed,
         "planar": info.planar,
-        "rig_digest": rig.digest(),
+        "rig_digest": rig.geometry_digest(),
         "sensor": {"camera_gamma": camera_gamma, "lens_psf": lens_psf,
-                   "lens_blur_px": lens_blur_px},
+                   "lens_blur_px": lens_blur_px, "projector_gamma": projector_gamma,
+                   "projector_black": projector_black},
     }
     (tdir / SCENE_JSON).write_text(json.dumps(scene_doc, indent=1) + "\n")
 
@@ -272,7 +300,8 @@ def simulate_recording(
             flows = true_flows(flows_renderer, frame.timestamp, exposure)
             flows.save(root / TRUTH_DIR / f"{frame.stem}{FLOWS_SUFFIX}")
 
-    sensor = SensorModel(bit_depth=bit_depth, camera_gamma=camera_gamma, lens_psf=lens_psf)
+    sensor = SensorModel(bit_depth=bit_depth, camera_gamma=camera_gamma, lens_psf=lens_psf,
+                         projector_gamma=projector_gamma, projector_black=projector_black)
     if lens_blur_px is not None:
         sensor = dataclasses.replace(sensor, lens_blur_px=float(lens_blur_px))
     camera = SyntheticCamera(rig, scene, frames=frames, fps=fps, exposure_s=exposure,

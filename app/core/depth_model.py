@@ -316,9 +316,10 @@ def load_or_build_lut(
 ) -> DepthLUT:
     """The LUT for this rig from the on-disk cache, building (and caching) it when absent.
 
-    The cache key hashes the rig, the stride, the depth range and the LUT version.
+    The cache key hashes the rig's geometry, the stride, the depth range and the LUT version.
     """
-    key = f"{rig.digest()}-s{stride}-{depth_range.near:g}-{depth_range.far:g}-v{LUT_VERSION}"
+    near, far = depth_range.near, depth_range.far
+    key = f"{rig.geometry_digest()}-s{stride}-{near:g}-{far:g}-v{LUT_VERSION}"
     path = lut_cache_dir() / f"lut-{key}.npz"
     if path.exists():
         try:

@@ -29,6 +29,7 @@ from .profile_model import (
     W_STEP,
     fit_blur,
     joint_at,
+    static_blur,
     tables,
     trilinear_at,
 )
@@ -135,18 +136,32 @@ BLUR_FIT_GAIN = 1.25
 
 #: frames whose moving bands are pooled for the blur fit
 BLUR_POOL_FRAMES = 8
+#: frames compared with the one before for lines that stand still (a wall behind a fan):
+#: early ones, which every replay and batch chunk replays in order
+STILL_LINE_FRAMES = (1, 2)
+#: a grid cell's band width and line interval agree this closely between two frames
+#: where its line stands still (camera px)
+STILL_TOLERANCE_PX = 0.1
+#: still-line measurements needed to trust them over the fit on moving bands
+STILL_MIN_LINES = 2000
+#: ... seen over magnifications that span this ratio (else the two parts of the blur
+#: cannot be told apart)
+MIN_STILL_SPAN = 1.15
 
 
 #: relative error of the fitted blur sigma that the uncertainty allows for: a sweep
 #: shorter than the line is read from its ramps, and there it depends on the blur
 BLUR_REL_ERROR = 0.1
+#: the same for a blur measured on still lines (``lightflow rig blur``): within 1-5 % of
+#: the simulator's optics in tests/test_blurcal.py
+CALIBRATED_BLUR_REL_ERROR = 0.05
 
 
 @nb.njit(cache=True, nogil=True)
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, blur_known, still_depth, sweeps, moving_at, pitch,
+    static_factor, static_margin, blur_known, blur_rel_error, still_depth, sweeps, moving_at, pitch,
     interval_ratio, banded, sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
@@ -155,7 +170,7 @@ def _sweeps(
     ``banded``: 1 where both patterns have a band (moving or not), else 0;
     ``pitch[p]``: the local pitch in projector px; ``interval_ratio``: log(B1 / B0);
     ``sens[p]``: how much the sweep (index units) changes when the blur sigma is
-    off by ``BLUR_REL_ERROR`` (signed: both patterns share one blur model);
+    off by ``blur_rel_error`` (signed: both patterns share one blur model);
     ``why``: a :mod:`.causes` code for cells without sweeps, else ``DEPTH``.
     With ``still_depth`` (single projector), ``interval_ratio`` is kept on every
     cell whose intervals the patterns can make, moving or not.
@@ -207,7 +222,7 @@ def _sweeps(
                     break
                 short = not (m >= m_max or m > line + 4.0 * sigma + 2.0)
                 L = np.nan
-                spread = 0.0  # the sweep's change for a blur larger by BLUR_REL_ERROR
+                spread = 0.0  # the sweep's change for a blur larger by blur_rel_error
                 if m >= m_max:
                     # far beyond line width and blur: the width at half height is the sweep
                     L = m
@@ -219,7 +234,7 @@ def _sweeps(
                     # width and ramp together: a sweep shorter than the line shows in the
                     # ramps, and there it depends on the blur: read it at two blurs
                     for k in range(2):
-                        sg = sigma * (1.0 + k * BLUR_REL_ERROR)
+                        sg = sigma * (1.0 + k * blur_rel_error)
                         v = joint_at(inv, s_lo, s_step, w_step, m_step, r_step, sg, line, m, r)
                         if k == 0:
                             L = v
@@ -321,7 +336,7 @@ def _decide(
     The error of the log ratio has a random part, ``lr_var``: the local variance
     of the sweeps over the number of independent bands averaged (cells along a
     row between two bands share them), and a systematic part, ``lr_sys``: a blur
-    off by ``BLUR_REL_ERROR`` moves both sweeps at once (``sens``).
+    off by its relative error moves both sweeps at once (``sens``).
 
     One projector: the log ratio is the cell's interval ratio and its random
     error the local variance of that ratio.  With ``still_depth`` every cell with
@@ -388,9 +403,21 @@ class FlowModel:
         # the profile tables are loaded (or built once per machine, ~15 s) here, with
         # the depth LUT, not on the first frame of a live capture
         tables()
-        #: per pattern, fitted blur model (a, b): sigma^2 = a + b * magnification^2
+        #: per pattern, blur model (a, b): sigma^2 = a + b * magnification^2, measured
+        #: once on static lines (the rig's ``blur``) or fitted on the moving bands
         self.blur = np.array([[1.0, 0.0], [1.0, 0.0]])
         self._fitted = False
+        measured = [pat.blur for _, pat in rig.patterns]
+        #: whether the rig file gives the blur (then it is never refitted)
+        self.calibrated = all(b is not None for b in measured)
+        #: relative error of the blur sigma that the uncertainty allows for
+        self.blur_rel_error = CALIBRATED_BLUR_REL_ERROR if self.calibrated else BLUR_REL_ERROR
+        #: where the blur model comes from: "rig", "still lines", "moving bands" or ""
+        self.blur_source = "rig" if self.calibrated else ""
+        self._prev: np.ndarray | None = None
+        if self.calibrated:
+            self.blur = np.array(measured, dtype=np.float64)
+            self._fitted = True
         self._pool: list[list[np.ndarray]] = []
         self.frames = 0
         #: grid stride in camera pixels (set by the pipeline)
@@ -429,6 +456,8 @@ class FlowModel:
 
     def refits_at(self, frame: int, params) -> bool:
         """Whether :meth:`combine` may refit the blur model on its ``frame``-th call."""
+        if self.blur_source in ("rig", "still lines"):
+            return False
         return (not self._fitted or frame in BLUR_EARLY_REFITS
                 or frame % params.blur_refit_frames == 0)  # fmt: skip
 
@@ -452,8 +481,14 @@ class FlowModel:
         still = self.still_depth(params)
         # the optics do not change: refit on the pooled bands of the recent frames, often
         # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
+        if f in STILL_LINE_FRAMES and self._prev is not None and self.blur_source != "rig":
+            self._blur_from_still_lines(grids)
+        if not self.calibrated and f + 1 in STILL_LINE_FRAMES:
+            self._prev = grids[:, :2].copy()
         if self.refits_at(f, params):
             self._refit_blur(grids)
+        elif self.calibrated and f == 0:
+            self._show_blur(grids)
         gh, gw = grids.shape[2:]
         sweeps = np.empty((2, gh, gw), np.float32)
         moving_at = np.empty((2, gh, gw), np.float32)
@@ -469,7 +504,8 @@ class FlowModel:
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px, params.static_factor,
-            params.static_margin_px, self._fitted, still, sweeps, moving_at, pitch,
+            params.static_margin_px, self._fitted, self.blur_rel_error, still, sweeps, moving_at,
+            pitch,
             interval_ratio, banded, sens, why,
         )  # fmt: skip
         # Average the sweeps themselves over a few cells before any decision or log:
@@ -499,26 +535,82 @@ class FlowModel:
         """Whether lines that stand still get a depth (one projector, see ``static_depth``)."""
         return self.single and params.static_depth != "off"
 
+    def magnifications(self, grids: np.ndarray) -> np.ndarray:
+        """Per pattern and grid cell, camera px per projector px: the interval over the pitch.
+
+        ``grids`` as in :meth:`combine`; one projector: the pitch at the column
+        that the interval ratio of the two patterns gives.  NaN without intervals.
+        """
+        with np.errstate(invalid="ignore", divide="ignore"):
+            B0, B1 = grids[0, 1], grids[1, 1]
+            if self.single:
+                u = np.interp(np.log(B1 / B0), np.linspace(self._u_lo, self._u_hi, len(self._u_of)),
+                              self._u_of, left=np.nan, right=np.nan)  # fmt: skip
+            out = np.empty((2, *B0.shape))
+            for p, (proj, pat) in enumerate(self.pairs):
+                P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
+                out[p] = grids[p, 1] / P
+        return out
+
+    def _blur_from_still_lines(self, grids: np.ndarray) -> None:
+        """Measure the blur on lines that stood still since the previous frame (a wall).
+
+        Their width is known from the rig, so their ramps give the blur
+        (:func:`static_blur`), far better than the moving bands' fit.  Both
+        patterns share one optics model, as in the fit; two patterns seen at
+        different magnifications on one wall separate its camera and projector
+        parts.  Used when enough lines stood still, over magnifications that
+        differ by :data:`MIN_STILL_SPAN`; else the fit on moving bands stays.
+        """
+        mags = self.magnifications(grids)
+        cols = [[], [], [], [], []]
+        with np.errstate(invalid="ignore"):
+            for p, (_, pat) in enumerate(self.pairs):
+                m, B, r, slant = grids[p]
+                line = pat.width_px * mags[p]
+                still = ((np.abs(m - self._prev[p, 0]) < STILL_TOLERANCE_PX)
+                         & (np.abs(B - self._prev[p, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+                for c, v in zip(cols, (np.where(still, m, np.nan), r, line, mags[p], slant),
+                                strict=True):  # fmt: skip
+                    c.append(v.ravel())
+        m, r, line, scale, slant = (np.concatenate(c) for c in cols)
+        fit = static_blur(m, r, line, scale, slant, min_bands=STILL_MIN_LINES)
+        if fit is None:
+            return
+        seen = scale[np.isfinite(m) & (m < line + 1.0)]
+        lo, hi = np.percentile(seen, [5, 95])
+        if hi < MIN_STILL_SPAN * lo:
+            return
+        self.blur[:] = fit[:2]
+        self._fitted = True
+        self.blur_source = "still lines"
+        self.blur_rel_error = CALIBRATED_BLUR_REL_ERROR
+        self._show_blur(grids)
+
+    def _show_blur(self, grids: np.ndarray) -> None:
+        """For display: each pattern's blur sigma at its median magnification."""
+        mags = self.magnifications(grids)
+        for p in range(2):
+            scale = mags[p][np.isfinite(mags[p])]
+            med = float(np.median(scale)) if scale.size else 1.0
+            self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
+
     def _refit_blur(self, grids: np.ndarray) -> None:
         """Fit the blur model on a subsample of this frame's bands (both patterns at once)."""
         # every third cell suffices on a large object; a small one (a ball) needs them all
         k = 3 if np.count_nonzero(np.isfinite(grids[0, 0, ::3, ::3])) > 3000 else 1
         sub = grids[:, :, ::k, ::k]
+        mags = self.magnifications(sub)
         with np.errstate(invalid="ignore", divide="ignore"):
-            B0, B1 = sub[0, 1], sub[1, 1]
-            if self.single:
-                u = np.interp(np.log(B1 / B0), np.linspace(self._u_lo, self._u_hi, len(self._u_of)),
-                              self._u_of, left=np.nan, right=np.nan)  # fmt: skip
             ms, rs, lines, scales, slants = [], [], [], [], []
-            for p, (proj, pat) in enumerate(self.pairs):
+            for p, (_, pat) in enumerate(self.pairs):
                 m, B, r, slant = sub[p]
                 # only where the line spacing changes slowly (planes, gentle curves): on
                 # strongly curved parts the edges also carry the change of magnification
                 dB = np.abs(np.gradient(B, axis=1)) / (k * self.stride)
                 m = np.where(dB < 0.1, m, np.nan)
                 slants.append(slant.ravel())
-                P = local_pitch(pat, proj.width, u) if self.single else pat.pitch_px
-                scale = np.broadcast_to(B / P, m.shape)
+                scale = mags[p]
                 ms.append(m.ravel())
                 rs.append(r.ravel())
                 lines.append(pat.width_px * scale.ravel())
@@ -537,6 +629,7 @@ class FlowModel:
                 if fitted is not None:
                     self.blur[p] = BLUR_FIT_GAIN * np.asarray(fitted)
                     self._fitted = True
+                    self.blur_source = "moving bands"
                 # for display: the blur at the median magnification
                 med = np.nanmedian(scales[p]) if np.isfinite(scales[p]).any() else 1.0
                 self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))

@@ -279,39 +279,26 @@ class DepthPipeline:
         return (frame % self.config.crosstalk_every == 0
                 or self.flow_model.refits_at(frame, self.config.flow))  # fmt: skip
 
+    def band_grids(self, frame) -> np.ndarray:
+        """The band measurements of one frame on the analysis grid (no flow, no depth).
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(2, 4, h, w)``: per pattern, the band width at half height, the line
+            interval, the 50->20 % ramp (camera px) and the lines' slant (columns
+            per row); NaN where no valid band is near.  What
+            ``lightflow rig blur`` measures static lines with.
+        """
+        return self._measure(frame, {})[2]
+
     def process(self, frame) -> FrameResult:
         """Depth for one frame.  Never raises on image content: bad pixels are NaN."""
         cfg = self.config
-        image = frame.image
-        cam = self.rig.camera
-        if image.shape[:2] != (cam.height, cam.width) or image.ndim != 3:
-            raise FrameError(
-                f"frame {frame.stem}: {image.shape[1]}x{image.shape[0]}, expected "
-                f"{cam.width}x{cam.height} (camera.width x camera.height)"
-            )
         t0 = time.perf_counter()
         timings = {}
-        # a 12-bit camera's full scale is 4095, not the uint16 maximum
-        self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
-                                   else 255.0)  # fmt: skip
-        weights = self._weights(image)
-        if self._windows is None or self._frames % cfg.crosstalk_every == 0:
-            # relearnt now and then: the first frame may have had merged or no bands
-            self._windows = self._learn_windows(image, weights)
-        t1 = time.perf_counter()
-        timings["unmix"] = (t1 - t0) * 1e3
-        gh, gw = self.grid_shape
-        bands, counts = self._detect(
-            image, weights, self._row_y, self._windows, self._rows_per_cell, self._buffers
-        )
-        for p in range(2):
-            bd.band_slants(bands[p], counts[p], self._row_y)
-        k = self._rows_per_cell
-        grids = np.empty((2, len(self._fields), gh, gw))
-        for p in range(2):
-            bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
+        bands, counts, grids = self._measure(frame, timings)
         t2 = time.perf_counter()
-        timings["bands"] = (t2 - t1) * 1e3
         fm = self.flow_model.combine(grids, cfg.flow)
         self.blur_px = fm.blur_px
         t3 = time.perf_counter()
@@ -374,6 +361,39 @@ class DepthPipeline:
             warnings=self._warnings(counts_by_cause),
             intervals_grid=grids[:, 1],
         )
+
+    def _measure(self, frame, timings: dict):
+        """Unmix and measure the bands of ``frame``: ``(bands, counts, grids)``."""
+        cfg = self.config
+        image = frame.image
+        cam = self.rig.camera
+        if image.shape[:2] != (cam.height, cam.width) or image.ndim != 3:
+            raise FrameError(
+                f"frame {frame.stem}: {image.shape[1]}x{image.shape[0]}, expected "
+                f"{cam.width}x{cam.height} (camera.width x camera.height)"
+            )
+        t0 = time.perf_counter()
+        # a 12-bit camera's full scale is 4095, not the uint16 maximum
+        self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
+                                   else 255.0)  # fmt: skip
+        weights = self._weights(image)
+        if self._windows is None or self._frames % cfg.crosstalk_every == 0:
+            # relearnt now and then: the first frame may have had merged or no bands
+            self._windows = self._learn_windows(image, weights)
+        t1 = time.perf_counter()
+        timings["unmix"] = (t1 - t0) * 1e3
+        gh, gw = self.grid_shape
+        bands, counts = self._detect(
+            image, weights, self._row_y, self._windows, self._rows_per_cell, self._buffers
+        )
+        for p in range(2):
+            bd.band_slants(bands[p], counts[p], self._row_y)
+        k = self._rows_per_cell
+        grids = np.empty((2, len(self._fields), gh, gw))
+        for p in range(2):
+            bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
+        timings["bands"] = (time.perf_counter() - t1) * 1e3
+        return bands, counts, grids
 
     def _causes(self, bands, counts, grids, why, raw, log_ratio, depth_grid) -> np.ndarray:
         """One :mod:`.causes` code per grid pixel: ``DEPTH`` or the first reason for none."""

@@ -613,25 +613,10 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     m, r, line, s2 = m.ravel()[idx], r.ravel()[idx], line.ravel()[idx], scale.ravel()[idx] ** 2
     k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
-    # per band: the ramp mismatch as a function of sigma, and its sign change
-    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
-    res = np.empty((sig.size, m.size))
-    for i, sg in enumerate(sig):
-        L = t.true_length(m, line, np.full_like(m, sg))
-        res[i] = t.ramp(L, line, np.full_like(m, sg)) - r
-    # the predicted ramp grows with sigma: the root is the first sign change to >= 0
-    fin = np.isfinite(res)
-    pos = fin & (res >= 0)
-    first = np.argmax(pos, axis=0)
-    has = pos.any(axis=0) & (first > 0)
-    cols = np.flatnonzero(has)
-    j = first[cols]
-    r0, r1 = res[j - 1, cols], res[j, cols]
-    good = np.isfinite(r0) & (r1 > r0)
-    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    # per band: the sigma at which the sweep its width implies also predicts its ramp
+    cols, sigma = _ramp_sigma(lambda sg: t.ramp(t.true_length(m, line, sg), line, sg) - r)
     if cols.size < min_bands // 2:
         return None
-    sigma = sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
     # only bands whose width decides their sweep at that sigma: for a sweep within
     # the line width the width is the line's, and a smaller sigma would fake a sweep
     L = t.true_length(m[cols], line[cols], sigma)
@@ -639,9 +624,44 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     cols, sigma = cols[keep], sigma[keep]
     if cols.size < min_bands // 2:
         return None
-    y = sigma**2
-    xa, xb = k2[cols], s2[cols]
-    # robust least squares of y = a xa + b xb (Tukey reweighting)
+    return blur_model(sigma**2, k2[cols], s2[cols])
+
+
+def _ramp_sigma(mismatch):
+    """Per band, the blur sigma where ``mismatch(sigma)`` (predicted minus measured ramp,
+    an array over the bands) crosses zero; returns the bands that have one and it.
+
+    The predicted ramp grows with sigma: the root is the first sign change to >= 0,
+    found on a 0.05 px grid over the tables' sigma axis and interpolated linearly.
+    """
+    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
+    res = np.stack([mismatch(sg) for sg in sig])
+    pos = np.isfinite(res) & (res >= 0)
+    first = np.argmax(pos, axis=0)
+    cols = np.flatnonzero(pos.any(axis=0) & (first > 0))
+    j = first[cols]
+    r0, r1 = res[j - 1, cols], res[j, cols]
+    good = np.isfinite(r0) & (r1 > r0)
+    cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
+    return cols, sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
+
+
+def blur_model(sigma2, k2, s2) -> tuple[float, float]:
+    """Robust least squares of ``sigma^2 = a k^2 + b s^2`` (Tukey reweighting).
+
+    Parameters
+    ----------
+    sigma2 : numpy.ndarray
+        Per band, the blur variance (camera px^2).
+    k2, s2 : numpy.ndarray
+        Per band, ``1 + slant^2`` and the magnification squared.
+
+    Returns
+    -------
+    (a, b) : tuple of float
+        ``b >= 0`` (a defocus cannot be negative); ``a`` clipped to the tables.
+    """
+    y, xa, xb = sigma2, k2, s2
     w = np.ones_like(y)
     a, b = float(np.median(y)), 0.0
     spread = np.ptp(xb) > 0.15 * np.mean(xb)
@@ -661,3 +681,40 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
         w = np.where(np.abs(u) < 1, 1 - u * u, 0.0)
     a = float(np.clip(a, 0.05, S_AXIS[-1] ** 2))
     return a, float(b)
+
+
+def static_blur(m, r, line, scale, slant=None, min_bands: int = 200):
+    """Fit the blur model on lines that stand still (a calibration: ``L = 0``).
+
+    A static line's ramp depends on its width (known from the rig and the
+    magnification) and the blur alone, so each line gives its sigma directly;
+    lines seen at several depths (magnifications) separate the camera part
+    ``a`` from the projector part ``b`` (:func:`blur_model`).
+
+    Parameters
+    ----------
+    m, r, line, scale, slant : numpy.ndarray
+        As in :func:`fit_blur`; bands wider than their line by more than a
+        pixel (moving) are left out.
+    min_bands : int
+
+    Returns
+    -------
+    (a, b, n) : tuple, or None when fewer than ``min_bands`` static lines are seen
+        ``n``: the number of lines (grid cells) used.
+    """
+    m, r, line, scale = (np.asarray(v, np.float64).ravel() for v in (m, r, line, scale))
+    ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & np.isfinite(scale)
+    ok &= (m < line + 1.0) & (line > 0.0)
+    idx = np.flatnonzero(ok)
+    if idx.size < min_bands:
+        return None
+    m, r, line, s2 = m[idx], r[idx], line[idx], scale[idx] ** 2
+    k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(np.ravel(slant)[idx]) ** 2
+    t = tables()
+    # per line: the sigma at which a line of no sweep has the measured ramp
+    cols, sigma = _ramp_sigma(lambda sg: t.ramp(np.zeros_like(m), line, sg) - r)
+    if cols.size < min_bands:
+        return None
+    a, b = blur_model(sigma**2, k2[cols], s2[cols])
+    return a, b, int(cols.size)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,11 @@ class Pattern:
         Only for ``uniform``.
     lines : int
         Only for ``exp2`` and ``exp2-reversed``.
+    blur : tuple of float, optional
+        Measured blur of this pattern's lines in the camera (``lightflow rig
+        blur``): ``(a, b)`` with ``sigma^2 = a (1 + slant^2) + b m^2`` in camera
+        px^2, ``m`` the magnification (camera px per projector px).  Without
+        it the pipeline fits the blur on the moving bands of the first frames.
     """
 
     channel: str
@@ -53,6 +58,7 @@ class Pattern:
     pitch_px: float = 0.0
     offset_px: float = 0.0
     lines: int = 0
+    blur: tuple | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"channel": self.channel, "kind": self.kind}
@@ -60,6 +66,8 @@ class Pattern:
             d.update(pitch_px=self.pitch_px, width_px=self.width_px, offset_px=self.offset_px)
         else:
             d.update(lines=self.lines, width_px=self.width_px)
+        if self.blur is not None:
+            d["blur"] = {"camera_px2": self.blur[0], "projector_px2": self.blur[1]}
         return d
 
 
@@ -130,6 +138,17 @@ class Rig:
     def single_projector(self) -> bool:
         return len(self.projectors) == 1
 
+    def with_blur(self, blurs) -> Rig:
+        """The same rig with a measured blur ``(a, b)`` per pattern (file order), or None."""
+        blurs = list(blurs)
+        projectors = []
+        for proj in self.projectors:
+            pats = tuple(replace(pat, blur=None if (b := blurs.pop(0)) is None
+                                 else (float(b[0]), float(b[1])))
+                         for pat in proj.patterns)  # fmt: skip
+            projectors.append(replace(proj, patterns=pats))
+        return replace(self, projectors=tuple(projectors))
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "format": RIG_FORMAT,
@@ -138,8 +157,21 @@ class Rig:
         }
 
     def digest(self) -> str:
-        """A stable hash of the geometry and patterns (keys the LUT cache)."""
+        """A stable hash of the whole rig document (geometry, patterns, measured blur)."""
         text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def geometry_digest(self) -> str:
+        """A stable hash of the geometry and patterns only (keys the LUT cache).
+
+        The same as :meth:`digest` for a rig without a measured blur, which does
+        not change where lines fall.
+        """
+        d = self.to_dict()
+        for proj in d["projectors"]:
+            for pat in proj["patterns"]:
+                pat.pop("blur", None)
+        text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def scaled(self, factor: float) -> Rig:
@@ -345,11 +377,18 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
         raise rd.fail(where, "expected an object")
     kind = rd.string(d.get("kind"), f"{where}.kind", PATTERN_KINDS)
     if kind == "uniform":
-        rd.obj(d, where, base | {"pitch_px", "offset_px"})
+        rd.obj(d, where, base | {"pitch_px", "offset_px"}, {"blur"})
     else:
-        rd.obj(d, where, base | {"lines"})
+        rd.obj(d, where, base | {"lines"}, {"blur"})
     channel = rd.string(d["channel"], f"{where}.channel", CHANNELS)
     width = rd.number(d["width_px"], f"{where}.width_px", positive=True)
+    blur = None
+    if "blur" in d:
+        b = rd.obj(d["blur"], f"{where}.blur", {"camera_px2", "projector_px2"})
+        blur = (rd.number(b["camera_px2"], f"{where}.blur.camera_px2", positive=True),
+                rd.number(b["projector_px2"], f"{where}.blur.projector_px2"))  # fmt: skip
+        if blur[1] < 0:
+            raise rd.fail(f"{where}.blur.projector_px2", f"expected 0 or more, got {blur[1]:g}")
     if kind == "uniform":
         pitch = rd.number(d["pitch_px"], f"{where}.pitch_px", positive=True)
         offset = rd.number(d["offset_px"], f"{where}.offset_px")
@@ -363,7 +402,7 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
                 f"{where}.pitch_px",
                 f"pattern does not fit the projector: {n_lines} lines in {proj_width} px (need 3)",
             )
-        return Pattern(channel, kind, width, pitch_px=pitch, offset_px=offset)
+        return Pattern(channel, kind, width, pitch_px=pitch, offset_px=offset, blur=blur)
     lines = rd.integer(d["lines"], f"{where}.lines", minimum=3)
     # the narrowest gap between two exp2 lines is at the dense end
     narrowest = proj_width * (2 ** (1 / lines) - 1)
@@ -373,7 +412,7 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
             f"pattern does not fit the projector: {lines} lines leave a {narrowest:.1f} px "
             f"gap at the dense end, need more than twice width_px ({width:g})",
         )
-    return Pattern(channel, kind, width, lines=lines)
+    return Pattern(channel, kind, width, lines=lines, blur=blur)
 
 
 def rig_from_dict(data: Any, source: str = "rig") -> Rig:

@@ -5,7 +5,8 @@ projected line patterns on the moving scene: ray-scene intersection, shadow
 rays to each projector, projection into each projector with OpenCV's own
 lens model (tabulated from ``cv2.projectPoints``), line boxes blurred by
 projector defocus, Lambertian shading with inverse-square fall-off, ambient
-light and colour crosstalk.  Time and pixel area are integrated together with
+light, the projector's response (gamma of the pattern's levels, black level)
+and colour crosstalk.  Time and pixel area are integrated together with
 stratified samples.  Noise and 8-bit quantisation are applied by
 :func:`expose`.  It shares no geometry code with the reconstruction: camera
 rays and projector pixels come from OpenCV, patterns are rasterised by
@@ -426,8 +427,8 @@ def _line_light(foot, u, sigma):
 @nb.njit(cache=True)
 def _pixel_mc(
     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
-    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
-    t0, exposure, k0, samples, offsets,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
+    ambient, t0, exposure, k0, samples, offsets,
 ):  # fmt: skip
     """Stratified Monte Carlo mean radiance (3 channels) of pixel ``(i, j)`` over the exposure.
 
@@ -472,10 +473,14 @@ def _pixel_mc(
             if cosi <= 0.0:
                 continue
             irr = alb * proj_power[q] * cosi / dist2
+            # the projector's black level: light of its dark columns, in every channel
+            acc0 += proj_black[q, 0] * irr
+            acc1 += proj_black[q, 1] * irr
+            acc2 += proj_black[q, 2] * irr
             for m in range(n_pat):
                 if pat_proj[m] != q:
                     continue
-                light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * irr
+                light = _line_light(pat_foot[m, : pat_nfoot[m]], u, defocus[q]) * pat_gain[m] * irr
                 c = pat_channel[m]
                 acc0 += crosstalk[0, c] * light
                 acc1 += crosstalk[1, c] * light
@@ -486,8 +491,8 @@ def _pixel_mc(
 @nb.njit(cache=True, nogil=True)
 def render_exposure(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
-    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
-    t0, exposure, samples, offsets, row_lo, row_hi, out,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
+    ambient, t0, exposure, samples, offsets, row_lo, row_hi, out,
 ):  # fmt: skip
     """Integrate radiance over the exposure for image rows ``row_lo .. row_hi`` into ``out``.
 
@@ -496,15 +501,19 @@ def render_exposure(
     centres; ``ray_dx``/``ray_dy`` their change per pixel (for sub-pixel
     samples).  ``offsets``: (samples, 3) stratified (time fraction, dx, dy).
     ``pat_foot``: (n_pat, max_lines, 2) line footprints padded, ``pat_nfoot``
-    the counts.  ``out``: (h, w, 3).
+    the counts.  ``pat_gain``: (n_pat,) light of a pattern's lines over its
+    dark columns, and ``proj_black``: (n_proj, 3) light of a projector's dark
+    columns in each camera channel, both as fractions of the projector's full
+    light (the projector response, see
+    :func:`lightflow.drivers.sim.synthetic.projector_response`).  ``out``: (h, w, 3).
     """
     w = rays.shape[1]
     for i in range(row_lo, row_hi):
         for j in range(w):
             a0, a1, a2 = _pixel_mc(
                 i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
-                proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk,
-                ambient, t0, exposure, 0, samples, offsets,
+                proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black,
+                defocus, crosstalk, ambient, t0, exposure, 0, samples, offsets,
             )  # fmt: skip
             out[i, j, 0] = a0
             out[i, j, 1] = a1
@@ -695,8 +704,8 @@ def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, tim
 
 @nb.njit(cache=True)
 def _segment_exact(
-    states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
-    crosstalk, ambient, n_proj, w3, wbuf, acc,
+    states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain,
+    proj_black, defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
 ):  # fmt: skip
     """Add ``weight`` x the exact mean light of pixel (ii, j) between knots ka and kb to ``acc``."""
     n_pat = pat_proj.shape[0]
@@ -726,10 +735,15 @@ def _segment_exact(
         w3[2] = by
         u0 = 0.5 * (sa[cu] + sb[cu])
         irr = weight * 0.5 * (sa[cu + 1] + sb[cu + 1])
+        acc[0] += proj_black[q, 0] * irr  # the projector's black level
+        acc[1] += proj_black[q, 1] * irr
+        acc[2] += proj_black[q, 2] * irr
         for m in range(n_pat):
             if pat_proj[m] != q:
                 continue
-            light = irr * _line_light_box(pat_foot[m, : pat_nfoot[m]], u0, w3, defocus[q], wbuf)
+            light = irr * (
+                pat_gain[m] * _line_light_box(pat_foot[m, : pat_nfoot[m]], u0, w3, defocus[q], wbuf)
+            )
             c = pat_channel[m]
             acc[0] += crosstalk[0, c] * light
             acc[1] += crosstalk[1, c] * light
@@ -739,8 +753,8 @@ def _segment_exact(
 @nb.njit(cache=True, nogil=True)
 def render_exposure_fast(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
-    pat_proj, pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient,
-    t0, exposure, samples, offsets, states, r0, row_lo, row_hi, out, mc_count,
+    pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
+    ambient, t0, exposure, samples, offsets, states, r0, row_lo, row_hi, out, mc_count,
 ):  # fmt: skip
     """Fast form of :func:`render_exposure` for image rows ``row_lo .. row_hi``.
 
@@ -800,8 +814,8 @@ def render_exposure_fast(
                     kb = last if whole else seg + 1
                     _segment_exact(
                         states, ii, j, ka, kb, 1.0 if whole else 1.0 / last, pat_proj,
-                        pat_channel, pat_foot, pat_nfoot, defocus, crosstalk, ambient, n_proj,
-                        w3, wbuf, acc,
+                        pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus,
+                        crosstalk, ambient, n_proj, w3, wbuf, acc,
                     )  # fmt: skip
                     continue
                 if border:
@@ -814,8 +828,8 @@ def render_exposure_fast(
                     div = float(last)
                 a0, a1, a2 = _pixel_mc(
                     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size,
-                    proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, defocus,
-                    crosstalk, ambient, ta, te, k0, ns, offsets,
+                    proj_power, pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain,
+                    proj_black, defocus, crosstalk, ambient, ta, te, k0, ns, offsets,
                 )  # fmt: skip
                 acc[0] += a0 / div
                 acc[1] += a1 / div

@@ -46,7 +46,13 @@ class SimProjector:
 
 @dataclass(frozen=True)
 class SimPattern:
-    """One line pattern: which projector shows it, in which channel, and its lines."""
+    """One line pattern: which projector shows it, in which channel, and its lines.
+
+    ``on_level`` and ``off_level`` are the 8-bit levels of its lit and its dark
+    columns.  The rig format's patterns are binary (255 and 0); other levels
+    describe patterns the format cannot express, which the renderer passes
+    through the projector's response like any level.
+    """
 
     projector: int
     channel: int
@@ -55,6 +61,8 @@ class SimPattern:
     pitch_px: float = 0.0
     offset_px: float = 0.0
     lines: int = 0
+    on_level: int = 255
+    off_level: int = 0
 
 
 @dataclass(frozen=True)

@@ -110,6 +110,19 @@ def _still_board(t):
     return board
 
 
+#: depths (m) of the blur-calibration board, one per second
+STEP_DEPTHS = (0.55, 0.75, 1.0)
+
+
+def _board_steps(t):
+    # a board standing still at one depth per second, facing the camera, tilted a
+    # little so that its lines are not all at one magnification
+    z = STEP_DEPTHS[int(math.floor(t + 1e-9)) % len(STEP_DEPTHS)]
+    ang = math.radians(10.0)
+    e1 = (math.cos(ang), 0.0, -math.sin(ang))
+    return np.stack([_rect(2, 0.85, 0, (0.0, 0.0, z), (0, 0, 0), e1, (0, 1, 0), 0.5, 0.4)])
+
+
 def _ball(centre0, v0, t, obj, radius=0.09):
     # thrown: ballistic from centre0 at time 0 with velocity v0
     acc = GRAVITY
@@ -217,6 +230,8 @@ SCENES: dict[str, Scene] = {
               0.3, True, 1.0 / SLOW),
         Scene("still-board", "board tilted 20/10 deg standing still at 0.8 m (one projector "
               "gives it depth from the line intervals)", 0.02, True, 1.0),
+        Scene("board-steps", "board standing still at 0.55, 0.75 and 1.0 m, a second each "
+              "(frames at 1 fps: for `lightflow rig blur`)", 0.02, True, 3.0),
         Scene("newspaper-board", "printed (newspaper) board along the axis (paper: 300 ms)",
               0.3, True, 1.0 / SLOW),
         Scene("fan-1ms", "a spinning fan in front of a static wall (paper: 1 ms)", 0.001, False,
@@ -241,6 +256,7 @@ _BUILDERS = {
     "ball-toward": _toward,
     "diagonal-board": lambda t: _tilted(t, 20.0, 10.0, rate=SLOW),
     "still-board": _still_board,
+    "board-steps": _board_steps,
     "newspaper-board": lambda t: _board(t, texture=1, speed=BOARD_SPEED * SLOW),
     "fan-1ms": _fan,
     "fan": _fan,

@@ -7,6 +7,7 @@ attaches the ground truth of each frame as ``frame.extras["truth"]``.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 from collections.abc import Callable, Iterator
@@ -157,6 +158,74 @@ def lens_blur(image: np.ndarray, psf: str, size_px: float) -> np.ndarray:
     raise ConfigError(f"lens_psf: expected 'gauss' or 'disk', got {psf!r}")
 
 
+def projector_response(levels, gamma: float = 1.0, black: float = 0.0) -> np.ndarray:
+    """Light a projector emits for 8-bit ``levels``, as a fraction of its full light.
+
+    ``black + (1 - black) * (level / 255) ** gamma``: level 255 emits the full
+    light, level 0 the black level (the light a real projector leaks when
+    showing black: its contrast is ``1 : 1 / black``), grey levels follow the
+    gamma curve between them.
+
+    Parameters
+    ----------
+    levels : array_like
+        Pattern levels, 0 .. 255.
+    gamma : float
+        The projector's gamma (1: linear).
+    black : float
+        Fraction of the full light emitted for level 0, in [0, 1).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 fractions, same shape as ``levels``.
+    """
+    v = np.asarray(levels, np.float64)
+    if np.any(~np.isfinite(v) | (v < 0) | (v > 255)):
+        raise ConfigError(f"projector levels: expected 0 .. 255, got {v.min():g} .. {v.max():g}")
+    if not (math.isfinite(gamma) and gamma > 0):
+        raise ConfigError(f"projector_gamma: expected a positive number, got {gamma:g}")
+    if not (math.isfinite(black) and 0 <= black < 1):
+        raise ConfigError(f"projector_black: expected 0 <= black < 1, got {black:g}")
+    return black + (1.0 - black) * (v / 255.0) ** gamma
+
+
+def pattern_light(spec: SimRig, sensor: SensorModel) -> tuple[np.ndarray, np.ndarray]:
+    """The projector response of a rig's patterns, as the renderer's kernels take it.
+
+    Each colour channel of a projector emits, at every lit point, its dark
+    columns' light everywhere plus, on its lines, the difference between its
+    lines' and its dark columns' light (:func:`projector_response` of the
+    pattern's ``on_level`` and ``off_level``).  A channel that shows no pattern
+    shows level 0, so it leaks the black level too.
+
+    Parameters
+    ----------
+    spec : SimRig
+        The simulator's reading of the rig.
+    sensor : SensorModel
+        Gives ``projector_gamma``, ``projector_black`` and the colour crosstalk.
+
+    Returns
+    -------
+    gain : numpy.ndarray
+        ``(n_patterns,)`` light of each pattern's lines above its dark columns.
+    black : numpy.ndarray
+        ``(n_projectors, 3)`` light of each projector's dark columns in each
+        camera channel (through the crosstalk).
+    """
+    def response(levels):
+        return projector_response(levels, sensor.projector_gamma, sensor.projector_black)
+
+    off = np.zeros((len(spec.projectors), 3))
+    gain = np.empty(len(spec.patterns))
+    for m, pat in enumerate(spec.patterns):
+        off[pat.projector, pat.channel] = pat.off_level
+        gain[m] = response(pat.on_level) - response(pat.off_level)
+    black = response(off) @ np.array(sensor.crosstalk, np.float64).T
+    return gain, black
+
+
 #: a static white surface facing the projector at this distance reaches WHITE_DN
 REFERENCE_DISTANCE_M = 0.75
 WHITE_DN = 210.0
@@ -181,6 +250,13 @@ class SensorModel:
     camera_gamma : float
         Response curve of the camera: ``DN = full * (signal / full) ** (1 / gamma)``
         after noise (1 = linear, the physical default).
+    projector_gamma : float
+        The projectors' gamma, applied to the patterns' 8-bit levels (see
+        :func:`projector_response`; the rig format's binary patterns are unchanged by it).
+    projector_black : float
+        Fraction of the full light a projector emits for level 0, inside its
+        frustum and shaded like its pattern light (0: ideal; a contrast of
+        1:500 is 0.002).  The reconstruction assumes black is dark.
     projector_defocus_px : float
         Gaussian sigma of the projector defocus in projector pixels.
     ambient_dn : float
@@ -198,6 +274,8 @@ class SensorModel:
     lens_blur_px: float = 0.6
     lens_psf: str = "gauss"
     camera_gamma: float = 1.0
+    projector_gamma: float = 1.0
+    projector_black: float = 0.0
     projector_defocus_px: float = 0.6
     ambient_dn: float = 8.0
     crosstalk: tuple = ((1.0, 0.03, 0.04), (0.04, 1.0, 0.05), (0.03, 0.05, 1.0))
@@ -239,14 +317,26 @@ class GroundTruth:
 
 
 class SceneRenderer:
-    """Renders frames of one scene for one rig (pure computation, no threads)."""
+    """Renders frames of one scene for one rig (pure computation, no threads).
 
-    def __init__(self, rig: Rig, scene: Scene, sensor: SensorModel = SensorModel()):
+    Parameters
+    ----------
+    rig : Rig
+    scene : Scene
+    sensor : SensorModel
+    spec : SimRig, optional
+        The simulator's reading of ``rig`` (default: :func:`read_rig` of its
+        document); give one to render what the rig format cannot say, such as
+        patterns with grey levels.
+    """
+
+    def __init__(self, rig: Rig, scene: Scene, sensor: SensorModel = SensorModel(),
+                 spec: SimRig | None = None):  # fmt: skip
         self.rig = rig
         self.scene = scene
         self.sensor = sensor
         # the simulator's own reading of the rig document, not the core's objects
-        self.spec = spec = read_rig(rig.to_dict())
+        self.spec = spec = read_rig(rig.to_dict()) if spec is None else spec
         cam = spec.camera
         rays = camera_rays_cv(cam.K, cam.dist, cam.width, cam.height)
         self.rays = np.array(rays)  # a writable copy: numba compiles for writable arrays
@@ -266,6 +356,7 @@ class SceneRenderer:
         self.pat_nfoot = np.array([len(f) for f in foots], dtype=np.int64)
         self.pat_proj = np.array([pat.projector for pat in pats], dtype=np.int64)
         self.pat_channel = np.array([pat.channel for pat in pats], np.int64)
+        self.pat_gain, self.proj_black = pattern_light(spec, sensor)
         # each projector is set so that a white surface at the reference distance is WHITE_DN
         target = np.array([0.0, 0.0, REFERENCE_DISTANCE_M])
         self.proj_power = np.array(
@@ -305,8 +396,8 @@ class SceneRenderer:
         shared = (
             self.rays, self.ray_dx, self.ray_dy, prims, self.texture, self.projs,
             self.proj_centre, self.proj_size, power, self.pat_proj, self.pat_channel,
-            self.pat_foot, self.pat_nfoot, defocus, crosstalk, ambient, t0, exposure_s,
-            s.samples, self.offsets,
+            self.pat_foot, self.pat_nfoot, self.pat_gain, self.proj_black, defocus, crosstalk,
+            ambient, t0, exposure_s, s.samples, self.offsets,
         )  # fmt: skip
         if exact:
 

@@ -1,0 +1,623 @@
+"""Sweeps of bands longer than the line interval, from the periodic row signal (numba).
+
+When a line's sweep ``L`` exceeds its interval ``B`` minus line width and blur,
+neighbouring bands merge and :mod:`lightflow.app.core.bands` rejects them.  The
+merged signal is still informative.  With identical bands spaced ``B`` (the
+model of :mod:`lightflow.app.core.profile_model`: ``I * box(L) * box(w) / L``,
+blurred by ``gauss(sigma)``, pixel-integrated) and ``L = (n + f) B`` with
+``n`` an integer and ``0 < f < 1``, every point is covered by ``n`` or ``n + 1``
+swept lines, so the row is a constant plus a train of *pulses*: bands of sweep
+``f B`` and height ``h = I w / L`` (the band's plateau height), centred on the
+lines' trajectory centres when ``n`` is even and half-way between them when
+``n`` is odd.  Its Fourier coefficients at harmonics ``m / B`` are::
+
+    C_0 = bg + h (n + f)          (= bg + I w / B)
+    C_m = h K_m sin(pi m f) / (pi m) exp(-2 pi i m x0 / B),
+    K_m = sinc(m w / B) sinc(m / B) exp(-2 pi^2 sigma^2 m^2 / B^2)
+
+(``x0`` a pulse centre, ``sinc(m / B)`` the pixel's own width).  This module
+fits those harmonics by linear least squares over a stretch of a row (no
+thresholds), then fits ``(h, f, x0)`` to them by Gauss-Newton.
+
+What the stretch alone gives, and what it does not:
+
+* ``f`` (the fractional part of ``L / B``) comes from the pulse *shape*
+  (``C_2 / C_1 = cos(pi f) K_2 / K_1`` and the higher ratios), independent of
+  the line intensity and the background.  It is not measurable near
+  ``f = 0`` and ``f = 1``: the pulses shrink to the line-and-blur profile or
+  fill the period, their shape stops depending on ``f`` (``f`` and ``h``
+  become one product), and at integer ``L / B`` the row is flat.  The fit's
+  covariance, with the noise taken as the larger of the fit residual and a
+  noise floor, decides this: a stretch is measurable when the predicted
+  standard deviation of ``L`` is at most ``max_rel_std`` of ``L``.
+* The integer part ``n`` is *not* in the shape (the same pulses arise for
+  every ``n``).  It needs one of these references, which the caller passes:
+
+  - the background ``bg`` under the bands (from the gaps of nearby
+    non-overlapping bands on the same surface, or a calibrated ambient
+    level): then ``L / B = (C_0 - bg) / h``.  Its error in interval units is
+    ``bg error / h``, so ``bg`` must be known to better than about a third of
+    the band height ``h`` -- and ``h`` falls as ``1 / L``: this works for
+    ``n`` up to 2-3 on bright surfaces, not beyond.
+  - a coarse prior ``L / B`` (continuity with neighbouring measured sweeps,
+    a previous frame, or another pattern): it must lie within
+    ``0.5 - integer_margin - 2 prior_std`` (0.3) intervals of the truth.
+  - the trajectory centre of one line (``centre``): the pulses sit on the
+    centres for even ``n`` and between them for odd ``n``, so the parity of
+    ``n`` follows and a reference only needs to be within
+    ``1 - integer_margin - 2 std`` (0.8 for a prior) intervals.  The
+    centres are not known from one row of one pattern; they are an input for
+    a caller that has them.
+
+  With no reference, or references that disagree, the stretch is
+  :data:`OV_AMBIGUOUS` (NaN).
+* The interval ``B`` is an input (:func:`refine_interval` refines a guess by
+  the same least squares), as are the line width ``w`` in camera pixels and
+  the blur ``sigma`` (both as the pipeline knows them).  The model assumes a
+  constant ``L``, ``B``, ``I`` and ``bg`` over the stretch: a stretch of 2-3
+  intervals on a smooth surface.  Stretches that do not fit the pulse model
+  (an edge, print, a changing interval) are :data:`OV_IRREGULAR`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .threads import run_rows
+
+#: output fields of :func:`measure_stretch` / :func:`measure_stretches`
+(O_SWEEP, O_FRACTION, O_TURNS, O_PULSE, O_STEP, O_MEAN, O_STD, O_NOISE, O_SHAPE,
+ O_CODE) = range(10)  # fmt: skip
+N_OUT = 10
+#: ``O_CODE`` values: measured, or why not
+OV_MEASURED = 1.0
+OV_SHORT = -1.0  # the stretch spans fewer than min_periods intervals
+OV_FLAT = -2.0  # the sweep's fraction is not measurable (near an integer L / B)
+OV_IRREGULAR = -3.0  # the harmonics do not follow the periodic band model
+OV_AMBIGUOUS = -4.0  # the integer part of L / B is not resolved by the references given
+#: (code, name) for counting rejections by cause
+CODES = ((OV_MEASURED, "measured"), (OV_SHORT, "short"), (OV_FLAT, "flat"),
+         (OV_IRREGULAR, "irregular"), (OV_AMBIGUOUS, "ambiguous"))  # fmt: skip
+
+_P_HARM, _P_MINPER, _P_FLOOR, _P_RELSTD, _P_SHAPE, _P_MARGIN, _P_BGSTD, _P_PRIORSTD = range(8)
+
+
+@dataclass(frozen=True)
+class OverlapParams:
+    """Tuning of the periodic-stretch measurement.
+
+    Attributes
+    ----------
+    max_harmonics : int
+        Most harmonics fitted (fewer when ``B`` is short: at most ``B / 2.5``).
+    min_periods : float
+        Shortest stretch, in line intervals.
+    noise_floor : float
+        Smallest noise (signal units, e.g. DN) assumed for the covariance, so that
+        noise-free rows are judged by the model's conditioning, not by zero residuals.
+    max_rel_std : float
+        A stretch is measurable when the predicted standard deviation of ``L`` is at
+        most this fraction of ``L``.
+    max_shape_residual : float
+        Largest rms misfit of the harmonics to the pulse model, relative to their rms.
+    integer_margin : float
+        A reference must place ``L / B - f`` within ``0.5 - integer_margin`` of an
+        integer (``1 - integer_margin`` of an integer of the right parity).
+    bg_std : float
+        Uncertainty of a given background (signal units), added to the reference's
+        spread in units of the fitted step height.
+    prior_std : float
+        Uncertainty of a given prior ``L / B`` (intervals).
+    """
+
+    max_harmonics: int = 12
+    min_periods: float = 2.0
+    noise_floor: float = 0.5
+    max_rel_std: float = 0.004
+    max_shape_residual: float = 0.05
+    integer_margin: float = 0.1
+    bg_std: float = 1.0
+    prior_std: float = 0.05
+
+    def as_array(self) -> np.ndarray:
+        """The parameters in the order the numba kernels read them."""
+        return np.array([self.max_harmonics, self.min_periods, self.noise_floor,
+                         self.max_rel_std, self.max_shape_residual, self.integer_margin,
+                         self.bg_std, self.prior_std], dtype=np.float64)  # fmt: skip
+
+
+@nb.njit(cache=True, inline="always")
+def _sinc(x):
+    if abs(x) < 1e-12:
+        return 1.0
+    return math.sin(math.pi * x) / (math.pi * x)
+
+
+@nb.njit(cache=True)
+def chirp_position(t, tc, g):
+    """Position at which lines ``B (1 + g (t - tc))`` apart are ``B`` apart.
+
+    ``tc + ln(1 + g (t - tc)) / g``: its derivative is ``1 / (1 + g (t - tc))``,
+    the local interval's inverse, relative to ``B``.
+    """
+    if g == 0.0:
+        return t
+    return tc + math.log1p(g * (t - tc)) / g
+
+
+@nb.njit(cache=True)
+def _cholesky_solve(G, rhs, sol, dinv):
+    """Solve ``G sol = rhs`` (G symmetric positive definite, overwritten by its factor).
+
+    Also writes the diagonal of ``G^-1`` into ``dinv``.  False when ``G`` is not
+    positive definite.  (The systems are 9-25 unknowns: LAPACK's call overhead
+    would dominate.)
+    """
+    P = G.shape[0]
+    for j in range(P):
+        d = G[j, j]
+        for k in range(j):
+            d -= G[j, k] * G[j, k]
+        if not (d > 1e-12 * G[0, 0]):
+            return False
+        d = math.sqrt(d)
+        G[j, j] = d
+        for i in range(j + 1, P):
+            v = G[i, j]
+            for k in range(j):
+                v -= G[i, k] * G[j, k]
+            G[i, j] = v / d
+    # forward and back substitution
+    y = np.empty(P)
+    for i in range(P):
+        v = rhs[i]
+        for k in range(i):
+            v -= G[i, k] * y[k]
+        y[i] = v / G[i, i]
+    for i in range(P - 1, -1, -1):
+        v = y[i]
+        for k in range(i + 1, P):
+            v -= G[k, i] * sol[k]
+        sol[i] = v / G[i, i]
+    # diag(G^-1) = column sums of squares of L^-1
+    Li = np.zeros((P, P))
+    for j in range(P):
+        Li[j, j] = 1.0 / G[j, j]
+        for i in range(j + 1, P):
+            v = 0.0
+            for k in range(j, i):
+                v -= G[i, k] * Li[k, j]
+            Li[i, j] = v / G[i, i]
+    for j in range(P):
+        v = 0.0
+        for i in range(j, P):
+            v += Li[i, j] * Li[i, j]
+        dinv[j] = v
+    return True
+
+
+@nb.njit(cache=True)
+def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
+    """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
+
+    Fits ``a_0 + sum_m a_m cos(2 pi m t / B) + b_m sin(2 pi m t / B)`` with ``t``
+    the sample position relative to ``lo``.  Writes ``coef[0] = a_0``,
+    ``coef[2m-1], coef[2m] = Re C_m, Im C_m`` with ``C_m = (a_m - i b_m) / 2`` (so
+    the series is ``sum_m C_m exp(2 pi i m t / B)``) and ``var_c[m]`` the mean
+    variance of ``Re C_m`` and ``Im C_m`` per unit noise variance.
+
+    With ``chirp`` = ``g`` the interval changes along the stretch as
+    ``B (1 + g (t - tc))`` (``tc`` its middle): ``t`` is then replaced by
+    :func:`chirp_position`, in which the lines are ``B`` apart.
+
+    Returns
+    -------
+    float
+        The residual rms (``sqrt(RSS / (N - P))``), NaN when the system is singular.
+    """
+    N = hi - lo
+    P = 2 * M + 1
+    w = 2.0 * math.pi / B
+    tc = 0.5 * (N - 1)
+    Sc = np.empty(2 * M + 1)
+    Ss = np.empty(2 * M + 1)
+    Sc[0] = N
+    Ss[0] = 0.0
+    if chirp == 0.0:
+        # closed-form sums Sc(k) + i Ss(k) = sum_t exp(i k w t), k = 0 .. 2M (k w is
+        # never a multiple of 2 pi: 2M < B): O(M^2), no design matrix
+        for k in range(1, 2 * M + 1):
+            th = k * w
+            amp = math.sin(0.5 * N * th) / math.sin(0.5 * th)
+            Sc[k] = amp * math.cos(0.5 * (N - 1) * th)
+            Ss[k] = amp * math.sin(0.5 * (N - 1) * th)
+    else:
+        # the same sums over the warped positions (products of harmonics are
+        # harmonics at the sum and difference frequencies whatever the positions)
+        Sc[1:] = 0.0
+        Ss[1:] = 0.0
+        for j in range(N):
+            th = w * chirp_position(float(j), tc, chirp)
+            c1, s1 = math.cos(th), math.sin(th)
+            c, s = 1.0, 0.0
+            for k in range(1, 2 * M + 1):
+                c, s = c * c1 - s * s1, s * c1 + c * s1
+                Sc[k] += c
+                Ss[k] += s
+    G = np.empty((P, P))
+    G[0, 0] = N
+    for a in range(1, M + 1):
+        G[0, 2 * a - 1] = G[2 * a - 1, 0] = Sc[a]
+        G[0, 2 * a] = G[2 * a, 0] = Ss[a]
+        for b in range(1, M + 1):
+            d = abs(a - b)
+            sd = Ss[d] if b >= a else -Ss[d]  # sum sin((b - a) w t)
+            G[2 * a - 1, 2 * b - 1] = 0.5 * (Sc[d] + Sc[a + b])
+            G[2 * a, 2 * b] = 0.5 * (Sc[d] - Sc[a + b])
+            G[2 * a - 1, 2 * b] = 0.5 * (Ss[a + b] + sd)  # sum cos(a w t) sin(b w t)
+            G[2 * b, 2 * a - 1] = G[2 * a - 1, 2 * b]
+    # right-hand side by rotating exp(i w t) harmonic by harmonic
+    rhs = np.zeros(P)
+    sxx = 0.0
+    c1, s1 = math.cos(w), math.sin(w)
+    cr, sr = 1.0, 0.0  # exp(i w t)
+    for j in range(N):
+        v = x[lo + j]
+        sxx += v * v
+        rhs[0] += v
+        if chirp != 0.0:
+            th = w * chirp_position(float(j), tc, chirp)
+            cr, sr = math.cos(th), math.sin(th)
+        cm, sm = cr, sr
+        for m in range(1, M + 1):
+            rhs[2 * m - 1] += v * cm
+            rhs[2 * m] += v * sm
+            cm, sm = cm * cr - sm * sr, sm * cr + cm * sr
+        cr, sr = cr * c1 - sr * s1, sr * c1 + cr * s1
+        if j % 64 == 63:  # keep the rotation on the unit circle
+            cr, sr = math.cos(w * (j + 1)), math.sin(w * (j + 1))
+    sol = np.empty(P)
+    dinv = np.empty(P)
+    if not _cholesky_solve(G, rhs, sol, dinv):
+        return np.nan
+    rss = max(sxx - np.dot(sol, rhs), 0.0)
+    coef[0] = sol[0]
+    var_c[0] = dinv[0]
+    for m in range(1, M + 1):
+        coef[2 * m - 1] = 0.5 * sol[2 * m - 1]
+        coef[2 * m] = -0.5 * sol[2 * m]
+        var_c[m] = 0.125 * (dinv[2 * m - 1] + dinv[2 * m])
+    return math.sqrt(rss / max(N - P, 1))
+
+
+@nb.njit(cache=True)
+def transfer(m, B, w, sigma):
+    """``K_m``: the line box, the pixel box and the blur at harmonic ``m / B``."""
+    return _sinc(m * w / B) * _sinc(m / B) * math.exp(-2.0 * (math.pi * sigma * m / B) ** 2)
+
+
+@nb.njit(cache=True)
+def _inv3(a):
+    """Inverse of a symmetric 3x3 matrix by cofactors (NaN when singular)."""
+    inv = np.empty((3, 3))
+    inv[0, 0] = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    inv[0, 1] = a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]
+    inv[0, 2] = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
+    inv[1, 1] = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
+    inv[1, 2] = a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]
+    inv[2, 2] = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    inv[1, 0], inv[2, 0], inv[2, 1] = inv[0, 1], inv[0, 2], inv[1, 2]
+    det = a[0, 0] * inv[0, 0] + a[0, 1] * inv[1, 0] + a[0, 2] * inv[2, 0]
+    if not (abs(det) > 1e-300):
+        inv[:, :] = np.nan
+        return inv
+    return inv / det
+
+
+@nb.njit(cache=True)
+def _pulse_fit(coef, M, B, K, hfx):
+    """Gauss-Newton fit of ``(h, f, x0)`` to the harmonics; returns (JtJ^-1 diag, misfit).
+
+    ``hfx`` holds the start and receives the result; the returned array is
+    ``[var_h, var_f, var_x0, rms misfit]`` per unit variance of a coefficient part.
+    """
+    h, f, x0 = hfx[0], hfx[1], hfx[2]
+    out = np.full(4, np.nan)
+    JtJ = np.zeros((3, 3))
+    for _it in range(30):
+        JtJ[:, :] = 0.0
+        Jtr = np.zeros(3)
+        # exp(i th_m) and exp(i pi m f) by rotation, harmonic by harmonic
+        th1 = -2.0 * math.pi * x0 / B
+        c1, s1 = math.cos(th1), math.sin(th1)
+        p1c, p1s = math.cos(math.pi * f), math.sin(math.pi * f)
+        c, s = 1.0, 0.0
+        pc, ps = 1.0, 0.0
+        for m in range(1, M + 1):
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+            pc, ps = pc * p1c - ps * p1s, ps * p1c + pc * p1s
+            S = ps / (math.pi * m)
+            dS = pc
+            km = K[m]
+            # model: h K S (c + i s); residual parts
+            rr = coef[2 * m - 1] - h * km * S * c
+            ri = coef[2 * m] - h * km * S * s
+            # d/dh, d/df, d/dx0 of (Re, Im); d th / d x0 = -2 pi m / B
+            g = -2.0 * math.pi * m / B
+            jr = (km * S * c, h * km * dS * c, -h * km * S * s * g)
+            ji = (km * S * s, h * km * dS * s, h * km * S * c * g)
+            for a in range(3):
+                Jtr[a] += jr[a] * rr + ji[a] * ri
+                for b in range(3):
+                    JtJ[a, b] += jr[a] * jr[b] + ji[a] * ji[b]
+        inv = _inv3(JtJ)
+        if not np.isfinite(inv[0, 0]):
+            return out
+        step = inv @ Jtr
+        h += step[0]
+        f += step[1]
+        x0 += step[2]
+        # stay inside (0, 1): the pulse train of f and of 1 - f (inverted) differ in sign of h
+        f = min(max(f, 1e-4), 1.0 - 1e-4)
+        if abs(step[1]) < 1e-10 and abs(step[2]) < 1e-8 * B:
+            break
+    res = 0.0
+    tot = 0.0
+    for m in range(1, M + 1):
+        th = -2.0 * math.pi * m * x0 / B
+        S = math.sin(math.pi * m * f) / (math.pi * m)
+        rr = coef[2 * m - 1] - h * K[m] * S * math.cos(th)
+        ri = coef[2 * m] - h * K[m] * S * math.sin(th)
+        res += rr * rr + ri * ri
+        tot += coef[2 * m - 1] ** 2 + coef[2 * m] ** 2
+    inv = _inv3(JtJ)
+    if not np.isfinite(inv[0, 0]):
+        return out
+    hfx[0], hfx[1], hfx[2] = h, f, x0
+    out[0], out[1], out[2] = inv[0, 0], inv[1, 1], inv[2, 2]
+    out[3] = math.sqrt(res / max(tot, 1e-300))
+    return out
+
+
+@nb.njit(cache=True)
+def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out):
+    """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        One row's signal (float, linear in light).
+    lo, hi : int
+        The stretch (at least ``min_periods * B`` samples).
+    B, w, sigma : float
+        Line interval, line width and blur sigma along the row (camera px), at the
+        stretch's middle.
+    chirp : float
+        Relative change of the interval per pixel along the stretch (``dB/dx / B``;
+        0 for a constant interval): the lines are fitted at their warped positions
+        (:func:`chirp_position`).  The sweep is taken as the same share of the
+        interval all along.
+    bg : float
+        Background under the bands (signal units), NaN if unknown.
+    prior : float
+        A coarse ``L / B`` (intervals), NaN if none.
+    centre : float
+        The trajectory centre of one line (row position, px), NaN if unknown.
+    params : numpy.ndarray
+        :meth:`OverlapParams.as_array`.
+    out : numpy.ndarray
+        ``(N_OUT,)``: ``O_SWEEP`` (L, camera px, NaN unless measured), ``O_FRACTION``
+        (``f``), ``O_TURNS`` (``n``), ``O_PULSE`` (a pulse centre, row position),
+        ``O_STEP`` (``h``), ``O_MEAN`` (``C_0``), ``O_STD`` (predicted std of ``L``),
+        ``O_NOISE`` (residual rms), ``O_SHAPE`` (relative misfit), ``O_CODE``.
+    """
+    for k in range(N_OUT):
+        out[k] = np.nan
+    out[O_CODE] = OV_SHORT
+    N = hi - lo
+    if not (B > 2.0) or N < params[_P_MINPER] * B:
+        return
+    M = int(min(params[_P_HARM], B / 2.5))
+    coef = np.zeros(2 * M + 1)
+    var_c = np.zeros(M + 1)
+    noise = harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp)
+    out[O_NOISE] = noise
+    out[O_CODE] = OV_FLAT
+    if not np.isfinite(noise):
+        return
+    out[O_MEAN] = coef[0]
+    K = np.empty(M + 1)
+    for m in range(M + 1):
+        K[m] = transfer(m, B, w, sigma)
+    # start: x0 from the fundamental's phase (its coefficient is positive at a pulse
+    # centre), f from the second harmonic (C_2 / C_1 = cos(pi f) K_2 / K_1)
+    c1r, c1i = coef[1], coef[2]
+    a1 = math.hypot(c1r, c1i)
+    if not (a1 > 0.0):
+        return
+    x0 = -math.atan2(c1i, c1r) * B / (2.0 * math.pi)
+    f0 = 0.5
+    if M >= 2:
+        th2 = -2.0 * math.pi * 2.0 * x0 / B
+        d2 = (coef[3] * math.cos(th2) + coef[4] * math.sin(th2)) / K[2]
+        ratio = d2 / (a1 / K[1])
+        f0 = math.acos(min(max(ratio, -0.98), 0.98)) / math.pi
+    h0 = a1 / K[1] * math.pi / math.sin(math.pi * f0)
+    hfx = np.array([h0, f0, x0])
+    cov = _pulse_fit(coef, M, B, K, hfx)
+    if not np.isfinite(cov[3]):
+        return
+    h, f, x0 = hfx[0], hfx[1], hfx[2]
+    if h < 0.0:
+        return
+    # noise of one coefficient part (mean over harmonics: nearly equal for stretches of
+    # several intervals)
+    vc = 0.0
+    for m in range(1, M + 1):
+        vc += var_c[m]
+    s_eff = max(noise, params[_P_FLOOR])
+    s_c = s_eff * math.sqrt(vc / M)
+    std_f = s_c * math.sqrt(cov[1])
+    std_h = s_c * math.sqrt(cov[0])
+    out[O_FRACTION] = f
+    out[O_STEP] = h
+    # misfit of the harmonics to the pulse model, relative to their rms (cov[3]); in
+    # absolute terms per coefficient part it may reach the noise (2 s_c) plus a share
+    # of the signal's own harmonics (a model error the noise does not explain)
+    out[O_SHAPE] = cov[3]
+    tot = 0.0
+    for m in range(1, M + 1):
+        tot += coef[2 * m - 1] ** 2 + coef[2 * m] ** 2
+    rms_c = math.sqrt(tot / (2 * M))
+    misfit = cov[3] * rms_c
+    # a pulse centre in row coordinates, nearest to the stretch's middle
+    tc = 0.5 * (N - 1)
+    x0 += B * round((tc - x0) / B)
+    if chirp != 0.0:
+        x0 = tc + math.expm1(chirp * (x0 - tc)) / chirp  # back to row positions
+    xc = lo + x0
+    out[O_PULSE] = xc
+    out[O_STD] = B * std_f
+    if f <= 2e-4 or f >= 1.0 - 2e-4 or not np.isfinite(std_f):
+        out[O_CODE] = OV_FLAT  # the fit ran to f = 0 or 1: no modulation to speak of
+        return
+    if misfit > math.hypot(2.0 * s_c, params[_P_SHAPE] * rms_c):
+        out[O_CODE] = OV_IRREGULAR
+        return
+    # --- the integer part: from the references given -------------------------------
+    parity = -1
+    if np.isfinite(centre):
+        d = (xc - centre) / B
+        d -= round(d)
+        parity = 0 if abs(d) < 0.25 else 1
+    refs = 0
+    lo_n = -1.0e9
+    hi_n = 1.0e9
+    margin = params[_P_MARGIN]
+    reach = 1.0 - margin if parity >= 0 else 0.5 - margin
+    if np.isfinite(bg):
+        u_dc = (coef[0] - bg) / h
+        # spread of u_dc: background error and the step's own error, in intervals
+        sd = math.hypot(params[_P_BGSTD] / h, u_dc * std_h / h)
+        span = max(reach - 2.0 * sd, 0.0)
+        lo_n = max(lo_n, u_dc - f - span)
+        hi_n = min(hi_n, u_dc - f + span)
+        refs += 1
+    if np.isfinite(prior):
+        span = max(reach - 2.0 * params[_P_PRIORSTD], 0.0)
+        lo_n = max(lo_n, prior - f - span)
+        hi_n = min(hi_n, prior - f + span)
+        refs += 1
+    n = -1
+    count = 0
+    if refs > 0:
+        for k in range(max(0, int(math.ceil(lo_n))), int(math.floor(hi_n)) + 1):
+            if parity < 0 or k % 2 == parity:
+                n = k
+                count += 1
+    if count == 1:
+        out[O_TURNS] = n
+    if count != 1:
+        # judged at one interval more than the fraction (overlap means n >= 1): flat if
+        # not even that would be measurable, else only the integer part is missing
+        if not (B * std_f <= params[_P_RELSTD] * (f + 1.0) * B):
+            out[O_CODE] = OV_FLAT
+        else:
+            out[O_CODE] = OV_AMBIGUOUS
+        return
+    L = (n + f) * B
+    if not (B * std_f <= params[_P_RELSTD] * L):
+        out[O_CODE] = OV_FLAT
+        return
+    out[O_SWEEP] = L
+    out[O_CODE] = OV_MEASURED
+
+
+@nb.njit(cache=True, nogil=True)
+def _measure_all(rows, row, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out, k0, k1):
+    for k in range(k0, k1):
+        measure_stretch(rows[row[k]], lo[k], hi[k], B[k], chirp[k], w[k], sigma[k], bg[k],
+                        prior[k], centre[k], params, out[k])  # fmt: skip
+
+
+def measure_stretches(
+    rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centre=None, chirp=None,
+    params: OverlapParams = OverlapParams(),
+) -> np.ndarray:  # fmt: skip
+    """:func:`measure_stretch` over many stretches (vectorised inputs, one per stretch).
+
+    Parameters
+    ----------
+    rows : numpy.ndarray
+        ``(R, W)`` float64 row signals.
+    row, lo, hi : numpy.ndarray
+        Per stretch: its row index in ``rows`` and its sample range.
+    B, w, sigma : numpy.ndarray or float
+        Per stretch (or shared): interval, line width, blur (camera px).
+    bg, prior, centre : numpy.ndarray, float or None
+        Integer-part references (None: unknown everywhere).
+    chirp : numpy.ndarray, float or None
+        Relative change of the interval per pixel (None: constant intervals).
+    params : OverlapParams
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(S, N_OUT)`` results (fields ``O_*``).
+    """
+    rows = np.ascontiguousarray(rows, dtype=np.float64)
+    row = np.asarray(row, np.int64)
+    n = row.shape[0]
+
+    def vec(v, fill=np.nan):
+        v = fill if v is None else v
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (n,)))
+
+    out = np.empty((n, N_OUT))
+    lo = np.asarray(lo, np.int64)
+    hi = np.asarray(hi, np.int64)
+    # stretches are independent: a band of them per thread (the pipeline's shared pool)
+    run_rows(_measure_all, n, rows, row, lo, hi, vec(B), vec(chirp, 0.0), vec(w), vec(sigma),
+             vec(bg), vec(prior), vec(centre), params.as_array(), out)  # fmt: skip
+    return out
+
+
+@nb.njit(cache=True)
+def _residual_at(x, lo, hi, B, M):
+    coef = np.zeros(2 * M + 1)
+    var_c = np.zeros(M + 1)
+    return harmonic_fit(x, lo, hi, B, M, coef, var_c)
+
+
+def refine_interval(x, lo: int, hi: int, B0: float, rel_range: float = 0.1,
+                    max_harmonics: int = 12) -> float:  # fmt: skip
+    """The period near ``B0`` that best explains ``x[lo:hi]`` as a periodic signal.
+
+    Minimises the residual of :func:`harmonic_fit` over ``B`` in
+    ``B0 * (1 +- rel_range)`` by a grid and golden-section search.  A flat row (an
+    integer ``L / B``) has no period: the answer is then meaningless, and the
+    caller's :func:`measure_stretch` reports it as flat.
+    """
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    M = int(min(max_harmonics, B0 / 2.5))
+    grid = B0 * (1.0 + np.linspace(-rel_range, rel_range, 41))
+    res = np.array([_residual_at(x, lo, hi, b, M) for b in grid])
+    k = int(np.nanargmin(res))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = _residual_at(x, lo, hi, c, M), _residual_at(x, lo, hi, d, M)
+    for _ in range(40):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = _residual_at(x, lo, hi, c, M)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = _residual_at(x, lo, hi, d, M)
+    return 0.5 * (a + b)

@@ -1,0 +1,94 @@
+"""``lightflow rig blur``: the blur of each pattern measured on still lines at three depths.
+
+The simulator blurs with a Gaussian lens of 0.6 px and a projector defocus of
+0.6 projector px: sigma^2 = 0.36 + 0.36 m^2 (camera px, m = magnification).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lightflow.app.blurcal import measure_blur
+from lightflow.app.cli import main
+from lightflow.app.core.flow import FlowModel, FlowParams
+from lightflow.app.core.rig import load_rig
+from lightflow.app.recording import RecordingWriter, read_recording, recording_frames
+from lightflow.drivers.sim.synthetic import SyntheticCamera
+
+RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
+
+
+def truth_sigma(m: float) -> float:
+    return math.sqrt(0.36 + 0.36 * m * m)
+
+
+@pytest.fixture(scope="module")
+def steps(tmp_path_factory) -> Path:
+    """A board standing still at 0.55, 0.75 and 1.0 m, one frame each (half resolution)."""
+    rig = load_rig(RIG_FILE).scaled(0.5)
+    root = tmp_path_factory.mktemp("steps") / "steps"
+    cam = SyntheticCamera(rig, "board-steps", frames=3, fps=1.0, seed=3)
+    with cam, RecordingWriter(root, rig, cam.exposure_s) as writer:
+        for frame in cam.frames():
+            assert writer.write(frame)
+    return root
+
+
+def test_blur_from_still_lines_matches_the_simulated_optics(steps):
+    rec = read_recording(steps)
+    blurs = measure_blur(rec.rig, recording_frames(rec))
+    assert len(blurs) == 2
+    for pb in blurs:
+        lo, hi = pb.magnification
+        assert hi > 1.3 * lo  # three depths: the two parts can be told apart
+        for m in (lo, hi):
+            # measured 1-5 % low at the smallest magnification, within 1 % at the largest
+            assert pb.sigma_px(m) == pytest.approx(truth_sigma(m), rel=0.07)
+        assert pb.lines > 10_000
+
+
+def test_rig_blur_writes_a_rig_whose_blur_the_pipeline_uses(steps, tmp_path, capsys):
+    out = tmp_path / "rig-blur.json"
+    assert main(["rig", "blur", str(steps), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "pattern 1" in text and "pattern 2" in text and "wrote" in text
+    doc = json.loads(out.read_text())
+    blur = doc["projectors"][0]["patterns"][0]["blur"]
+    assert set(blur) == {"camera_px2", "projector_px2"}
+    rig = load_rig(out)
+    base = load_rig(RIG_FILE)
+    assert rig.geometry_digest() == base.scaled(0.5).geometry_digest()  # same depth table
+    model = FlowModel(rig)
+    assert model.calibrated and model.fitted
+    assert not model.refits_at(0, FlowParams())  # never refitted
+    np.testing.assert_allclose(model.blur[0], [blur["camera_px2"], blur["projector_px2"]])
+
+
+def test_rig_blur_on_moving_lines_is_one_line(tmp_path, capsys):
+    rig = load_rig(RIG_FILE).scaled(0.25)
+    root = tmp_path / "moving"
+    cam = SyntheticCamera(rig, "board", frames=1, exposure_s=0.03)
+    with cam, RecordingWriter(root, rig, cam.exposure_s) as writer:
+        for frame in cam.frames():
+            assert writer.write(frame)
+    status = main(["rig", "blur", str(root), "--out", str(tmp_path / "x.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1
+    assert "too few static lines" in err[0]
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_bad_blur_field_is_one_line(tmp_path, capsys):
+    doc = json.loads(RIG_FILE.read_text())
+    doc["projectors"][0]["patterns"][0]["blur"] = {"camera_px2": 0.3, "projector_px2": -1}
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(doc))
+    status = main(["rig", "check", str(path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1
+    assert "patterns[0].blur.projector_px2" in err[0] and "expected 0 or more" in err[0]
