@@ -385,8 +385,11 @@ def render_ahead(camera, helper: Helper | None, wake: threading.Event, done: thr
             wake.wait()
             if done.is_set() or helper.failed:
                 return  # the main thread compiles the renderer after the pipeline
-        while not done.is_set() and camera.render_ahead(1, threads=1):
-            pass
+        # the first frame on every core: it is on the way to the first depth picture,
+        # which waits for it once the pipeline is ready (the helper has ended by now)
+        threads = None if camera.frames_ahead == 0 else 1
+        while not done.is_set() and camera.render_ahead(1, threads=threads):
+            threads = 1
     except BaseException as exc:  # noqa: BLE001 - handed to the main thread
         failed.append(exc)
 

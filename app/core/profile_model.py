@@ -523,9 +523,11 @@ class ProfileTables:
     def _lookup(table, step1, step2, sigma, a, b):
         shape = np.broadcast(sigma, a, b).shape
         out = np.empty(shape)
-        args = [np.ascontiguousarray(np.broadcast_to(v, shape), dtype=np.float64)
+        # flat, writable copies whatever the inputs (a broadcast scalar is read-only):
+        # one kernel signature, compiled while the demo warms up, not on its first frame
+        args = [np.array(np.broadcast_to(v, shape), dtype=np.float64).ravel()
                 for v in (sigma, a, b)]  # fmt: skip
-        _trilinear(table, S_AXIS, step1, step2, *args, out)
+        _trilinear(table, S_AXIS, step1, step2, *args, out.ravel())
         return out
 
     def true_length(self, m, w, sigma) -> np.ndarray:
@@ -538,7 +540,7 @@ class ProfileTables:
     def joint_length(self, m, r, w, sigma) -> np.ndarray:
         """Sweep ``L`` from the measured width ``m`` and ramp ``r`` together (camera px)."""
         shape = np.broadcast(m, r, w, sigma).shape
-        args = [np.ascontiguousarray(np.broadcast_to(v, shape), dtype=np.float64).ravel()
+        args = [np.array(np.broadcast_to(v, shape), dtype=np.float64).ravel()
                 for v in (sigma, w, m, r)]  # fmt: skip
         out = np.empty(args[0].size)
         _joint_many(self.joint, S_AXIS[0], S_AXIS[1] - S_AXIS[0], *args, out)
