@@ -34,8 +34,8 @@ the median error against the ground truth and the coverage: of the pixels on
 a moving object that every projector lights, the share that got a depth (the
 one definition used by `lightflow eval` and Rerun's green series; the status
 line's "depth on image" is the share of all camera pixels).  With the
-defaults: 36 of 36 frames with depth, median error 12.9 mm (90th percentile
-48.2 mm), coverage 65 % (left board 76 %, right board 50 %).
+defaults: 36 of 36 frames with depth, median error 12.7 mm (90th percentile
+48.4 mm), coverage 67 % (left board 79 %, right board 50 %).
 
 The colour leak between the red and blue pattern channels is the simulated
 camera's (0.035); --crosstalk auto estimates it from the frames, as capture
@@ -49,10 +49,10 @@ and compiles the pipeline's and the renderer's kernels (numba), in this
 process and a helper process side by side; all of it is cached under
 $XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
 the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches,
-load average 1.1-1.8): first depth picture after 18-20 s (35-38 s of CPU
-time) and the whole demo in 50-52 s; warm caches, 3.6 s and 45 s.
-Rendering is the bound while streaming (about 1.5 s of CPU time per frame);
-the first and last lines give the times and the CPU time of the run."""
+load average 1.3-2.0): first depth picture after 15-20 s (29-38 s of CPU
+time, more under load) and the whole demo in 42-51 s; warm caches, 3.6 s and
+45 s.  Rendering is the bound while streaming (about 1.5 s of CPU time per
+frame); the first and last lines give the times and the CPU time of the run."""
 
 EPILOG = """\
 scenes: boards-wall (default), ball-wall, board, textured-board, tilted-board, ball, fan,
@@ -535,10 +535,11 @@ def run(args: argparse.Namespace) -> int:
     # A first run on a machine builds tables and compiles kernels (numba, one core
     # each), all cached.  This process and a helper process compile the band
     # detector's two row kernels side by side; the helper then builds the band profile
-    # tables with them while this process compiles the rest of the band stage and
-    # builds the depth table, then compiles the rest of the pipeline (which needs the
-    # profile tables) while the helper compiles the renderer.  Frames are rendered
-    # ahead on whatever core is left idle.
+    # tables (from the shipped measurements) and the depth table while this process
+    # compiles the rest of the band stage, then compiles the renderer while this
+    # process compiles the rest of the pipeline (which needs both tables).  The first
+    # frame renders on every core once the renderer is cached, the next ones ahead on
+    # whatever core is left idle.
     helper = None
     done = threading.Event()  # stops the rendering ahead
     wake = threading.Event()  # the renderer's kernels are cached, or stop waiting for them
