@@ -648,20 +648,13 @@ def _masked_smooth(planes, mask, sigma, fill_fraction, weights=None):
     """Masked smoothing of each float32 ``(h, w)`` plane in ``planes`` over one ``mask``.
 
     With ``weights``, the first plane is a weighted mean (the others stay plain
-    means over the mask); all planes go through one multi-channel blur.
+    means over the mask).
     """
-    h, w = mask.shape
-    n = len(planes)
-    # channels: the planes (the first times its weight), the weights, the mask
-    stack = np.zeros((h, w, n + 2), np.float32)
-    wt = np.where(mask, weights if weights is not None else np.float32(1.0), np.float32(0.0))
-    stack[..., 0] = np.where(mask, planes[0] * wt, np.float32(0.0))
-    for c, values in enumerate(planes[1:], 1):
-        stack[..., c] = np.where(mask, values, np.float32(0.0))
-    stack[..., n] = wt
-    stack[..., n + 1] = mask
-    blurred = _gauss(stack, sigma)
-    den = blurred[..., n + 1]
+    zero = np.float32(0.0)
+    # one blur per plane: OpenCV's 4-channel float box filter ran 4-9x slower on
+    # these maps than four planes (2.6 against 1.2 ms at 300x400)
+    den = _gauss(mask.astype(np.float32), sigma)
+    wt = None if weights is None else np.where(mask, weights, zero)
     fill = den >= fill_fraction
     if fill_fraction < 1.0:
         # only holes are filled: data on both sides (left and right, or above and
@@ -671,11 +664,17 @@ def _masked_smooth(planes, mask, sigma, fill_fraction, weights=None):
         fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
     fill |= mask
     den[~fill] = np.nan  # NaN out there, and no division by 0
-    wden = blurred[..., n]
-    wden[~fill] = np.nan
-    out = [blurred[..., 0] / wden]
-    for c in range(1, n):
-        out.append(blurred[..., c] / den)
+    out = []
+    for c, values in enumerate(planes):
+        if c == 0 and wt is not None:
+            wden = _gauss(wt, sigma)
+            wden[~fill] = np.nan
+            num = _gauss(np.where(mask, values * wt, zero), sigma)
+            num /= wden
+        else:
+            num = _gauss(np.where(mask, values, zero), sigma)
+            num /= den
+        out.append(num)
     return out
 
 
