@@ -79,12 +79,9 @@ def measure_blur(rig: Rig, frames: Iterable, stride: int = 4) -> list[PatternBlu
     samples: list[list[np.ndarray]] = [[], []]
     n = 0
     for frame in frames:
-        grids = pipeline.band_grids(frame)
-        mags = pipeline.flow_model.magnifications(grids)
-        for p, (_, pat) in enumerate(rig.patterns):
-            m, _, r, slant = grids[p]
-            line = pat.width_px * mags[p]
-            samples[p].append(np.stack([m, r, line, mags[p], slant]).reshape(5, -1))
+        lines = pipeline.flow_model.line_samples(pipeline.band_grids(frame))
+        for p in range(2):
+            samples[p].append(lines[p])
         n += 1
     if n == 0:
         raise CalibrationError("rig blur: no frames to measure")

@@ -488,7 +488,7 @@ class FlowModel:
         if self.refits_at(f, params):
             self._refit_blur(grids)
         elif self.calibrated and f == 0:
-            self._show_blur(grids)
+            self._show_blur(self.magnifications(grids))
         gh, gw = grids.shape[2:]
         sweeps = np.empty((2, gh, gw), np.float32)
         moving_at = np.empty((2, gh, gw), np.float32)
@@ -562,18 +562,13 @@ class FlowModel:
         parts.  Used when enough lines stood still, over magnifications that
         differ by :data:`MIN_STILL_SPAN`; else the fit on moving bands stays.
         """
-        mags = self.magnifications(grids)
-        cols = [[], [], [], [], []]
+        samples = self.line_samples(grids)
         with np.errstate(invalid="ignore"):
-            for p, (_, pat) in enumerate(self.pairs):
-                m, B, r, slant = grids[p]
-                line = pat.width_px * mags[p]
-                still = ((np.abs(m - self._prev[p, 0]) < STILL_TOLERANCE_PX)
-                         & (np.abs(B - self._prev[p, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
-                for c, v in zip(cols, (np.where(still, m, np.nan), r, line, mags[p], slant),
-                                strict=True):  # fmt: skip
-                    c.append(v.ravel())
-        m, r, line, scale, slant = (np.concatenate(c) for c in cols)
+            still = ((np.abs(grids[:, 0] - self._prev[:, 0]) < STILL_TOLERANCE_PX)
+                     & (np.abs(grids[:, 1] - self._prev[:, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+        samples[:, 0] = np.where(still.reshape(2, -1), samples[:, 0], np.nan)
+        # both patterns pooled: one optics model
+        m, r, line, scale, slant = samples.transpose(1, 0, 2).reshape(5, -1)
         fit = static_blur(m, r, line, scale, slant, min_bands=STILL_MIN_LINES)
         if fit is None:
             return
@@ -585,11 +580,26 @@ class FlowModel:
         self._fitted = True
         self.blur_source = "still lines"
         self.blur_rel_error = CALIBRATED_BLUR_REL_ERROR
-        self._show_blur(grids)
+        self._show_blur(samples[:, 3])
 
-    def _show_blur(self, grids: np.ndarray) -> None:
-        """For display: each pattern's blur sigma at its median magnification."""
+    def line_samples(self, grids: np.ndarray) -> np.ndarray:
+        """Per pattern, flat rows of what the blur is measured from, one column per cell.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(2, 5, h * w)``: the band width ``m``, the ramp, the line width and
+            the magnification (:meth:`magnifications`), and the lines' slant.
+        """
         mags = self.magnifications(grids)
+        out = np.empty((2, 5, mags[0].size))
+        for p, (_, pat) in enumerate(self.pairs):
+            m, _, r, slant = grids[p]
+            out[p] = np.stack([m, r, pat.width_px * mags[p], mags[p], slant]).reshape(5, -1)
+        return out
+
+    def _show_blur(self, mags: np.ndarray) -> None:
+        """For display: each pattern's blur sigma at its median magnification ``mags[p]``."""
         for p in range(2):
             scale = mags[p][np.isfinite(mags[p])]
             med = float(np.median(scale)) if scale.size else 1.0
@@ -600,39 +610,26 @@ class FlowModel:
         # every third cell suffices on a large object; a small one (a ball) needs them all
         k = 3 if np.count_nonzero(np.isfinite(grids[0, 0, ::3, ::3])) > 3000 else 1
         sub = grids[:, :, ::k, ::k]
-        mags = self.magnifications(sub)
+        samples = self.line_samples(sub)
         with np.errstate(invalid="ignore", divide="ignore"):
-            ms, rs, lines, scales, slants = [], [], [], [], []
-            for p, (_, pat) in enumerate(self.pairs):
-                m, B, r, slant = sub[p]
-                # only where the line spacing changes slowly (planes, gentle curves): on
-                # strongly curved parts the edges also carry the change of magnification
-                dB = np.abs(np.gradient(B, axis=1)) / (k * self.stride)
-                m = np.where(dB < 0.1, m, np.nan)
-                slants.append(slant.ravel())
-                scale = mags[p]
-                ms.append(m.ravel())
-                rs.append(r.ravel())
-                lines.append(pat.width_px * scale.ravel())
-                scales.append(scale)
+            # only where the line spacing changes slowly (planes, gentle curves): on
+            # strongly curved parts the edges also carry the change of magnification
+            dB = np.abs(np.gradient(sub[:, 1], axis=2)) / (k * self.stride)
+            samples[:, 0] = np.where(dB.reshape(2, -1) < 0.1, samples[:, 0], np.nan)
             # one optics model for both patterns, fitted on the moving bands of both: the
             # same camera, and the projectors' defocus scales with magnification alike
-            sample = [np.concatenate(ms), np.concatenate(rs), np.concatenate(lines),
-                      np.concatenate([sc.ravel() for sc in scales]), np.concatenate(slants)]
+            sample = samples.transpose(1, 0, 2).reshape(5, -1)
             moving = np.isfinite(sample[0]) & (sample[0] > sample[2] + 1.0)
             # pool the moving bands of the recent frames: a small object (a ball) has too
             # few in one frame, and the fit of one frame is noisy (the optics do not change)
             self._pool.append([v[moving] for v in sample])
             self._pool = self._pool[-BLUR_POOL_FRAMES:]
             fitted = fit_blur(*(np.concatenate(v) for v in zip(*self._pool, strict=True)))
-            for p in range(2):
-                if fitted is not None:
-                    self.blur[p] = BLUR_FIT_GAIN * np.asarray(fitted)
-                    self._fitted = True
-                    self.blur_source = "moving bands"
-                # for display: the blur at the median magnification
-                med = np.nanmedian(scales[p]) if np.isfinite(scales[p]).any() else 1.0
-                self.blur_px[p] = float(np.sqrt(self.blur[p, 0] + self.blur[p, 1] * med**2))
+        if fitted is not None:
+            self.blur[:] = BLUR_FIT_GAIN * np.asarray(fitted)
+            self._fitted = True
+            self.blur_source = "moving bands"
+        self._show_blur(samples[:, 3])
 
 
 def _gauss(img: np.ndarray, sigma: float) -> np.ndarray:
