@@ -13,6 +13,10 @@ interpolation on the ramps (exact on a linear ramp).  Because height and
 background are measured per band, a band on dark print and a band on white
 paper give the same length: the albedo is normalised away locally.
 
+Dark print (text on a newspaper) cuts bands into pieces: before measuring,
+:func:`fill_print` fills dips shorter than a few rows along the lines, which
+are upright in the image (see there why this leaves bands unchanged).
+
 Rejected (``valid`` false), so that no depth is ever invented from them:
 bands without a clean gap on both sides (overlapping bands, sweep close to the
 interval), asymmetric bands (cut by an object boundary or the panel edge),
@@ -25,9 +29,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numba as nb
 import numpy as np
 
+from .errors import ConfigError
 from .threads import run_rows
 
 #: band fields in the per-row output
@@ -61,6 +67,9 @@ class BandParams:
         Image rows averaged on each side of a measured row (only for straight, upright lines).
     rows_per_cell : int
         Image rows measured per grid cell; their measurements are averaged.
+    print_fill_px : int
+        Dark print shorter than this along the lines (image columns) is filled before the
+        bands are measured (:func:`fill_print`); 1 turns it off.
     """
 
     min_contrast: float = 0.025
@@ -69,6 +78,89 @@ class BandParams:
     min_gap_px: float = 1.0
     vertical_extra: int = 0
     rows_per_cell: int = 1
+    # about half the final smoothing's width (24 px): the fill never reaches further along a
+    # line than the smoothing averages anyway
+    print_fill_px: int = 13
+
+    def __post_init__(self):
+        if self.print_fill_px < 1 or self.print_fill_px % 2 == 0:
+            raise ConfigError(
+                f"bands.print_fill_px: expected an odd number >= 1, got {self.print_fill_px}"
+            )
+
+
+def column_noise(flat: np.ndarray) -> float:
+    """Robust noise standard deviation of an image, from its vertical neighbours.
+
+    The lines run along the columns, so the difference of two neighbouring rows
+    is noise wherever no edge crosses: its median absolute value, scaled to a
+    Gaussian's sigma.  Every 16th row pair and every 4th value is plenty.
+
+    Parameters
+    ----------
+    flat : numpy.ndarray
+        ``(h, w)`` uint8 or uint16 image (channels side by side).
+    """
+    n = (flat.shape[0] - 1) // 16 * 16
+    diff = cv2.absdiff(flat[1 : n + 1 : 16, ::4], flat[0:n:16, ::4])
+    return float(np.median(diff)) * 1.4826 / np.sqrt(2.0)
+
+
+def fill_print(
+    image: np.ndarray, length: int, min_dip: float, rows: np.ndarray | None = None
+) -> np.ndarray:
+    """Fill dark print shorter than ``length`` rows along image columns (a grey closing).
+
+    Printed text cuts a swept line's band into pieces that no longer look like a
+    band.  The print is a multiplicative albedo, the same for every pattern and
+    constant over the exposure, and it is small; the bands run along the lines,
+    roughly along image columns.  A grey closing (dilation, then erosion) with a
+    vertical segment replaces every dark dip shorter than the segment by the
+    level around it along the column, and leaves unchanged whatever is monotone
+    along the segment: the ramps and plateaus of upright or slanted bands, object
+    edges and larger dark areas.  Only dips deeper than noise are filled (an
+    eighth of the level around them, five noise sigmas and ``min_dip``), with a
+    pixel of their shallower blurred rim on each side along the row: a closing
+    of noise would raise the background and the plateaus unequally, and the
+    ramps that the blur and short sweeps are measured on would move.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(h, w, c)`` uint8 or uint16 camera image.
+    length : int
+        Odd segment length in rows; 1 returns ``image`` itself.
+    min_dip : float
+        Shallowest dip filled, in image units.
+    rows : numpy.ndarray, optional
+        Fill only these rows (the ones the band detector reads); default all.
+
+    Returns
+    -------
+    numpy.ndarray
+        The filled image, same shape and dtype (a new array unless ``length`` is 1).
+    """
+    if length <= 1:
+        return image
+    h = image.shape[0]
+    # every channel of every column alike: one single-channel image, the fastest path
+    flat = np.ascontiguousarray(image).reshape(h, -1)
+    closed = cv2.morphologyEx(flat, cv2.MORPH_CLOSE, np.ones((length, 1), np.uint8))
+    sigma = column_noise(flat)
+    out = flat.copy()
+    part, closed_part = (flat, closed) if rows is None else (flat[rows], closed[rows])
+    # closed >= flat everywhere, so the unsigned difference cannot wrap
+    dip = cv2.subtract(closed_part, part)
+    level = cv2.max(cv2.addWeighted(closed_part, 0.125, closed_part, 0.0, 0.0),
+                    max(min_dip, 5.0 * sigma))  # fmt: skip
+    deep = cv2.compare(dip, level, cv2.CMP_GT)
+    # the pixel's channels and one neighbour's on each side: 11 values side by side
+    deep = cv2.dilate(deep, np.ones((1, 11), np.uint8))
+    if rows is None:
+        cv2.copyTo(closed_part, deep, out)
+    else:
+        out[rows] = cv2.copyTo(closed_part, deep, part.copy())
+    return out.reshape(image.shape)
 
 
 @nb.njit(cache=True, inline="always")
@@ -701,8 +793,11 @@ def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
                 continue
             clear = True  # no band of the target pattern near this source band
             for q in range(nt):
-                if not np.isnan(bt[q, F_START]) and bt[q, F_END] + 2.0 * bt[q, F_RAMP] > lo - 2 \
-                        and bt[q, F_START] - 2.0 * bt[q, F_RAMP] < hi + 2:
+                if (
+                    not np.isnan(bt[q, F_START])
+                    and bt[q, F_END] + 2.0 * bt[q, F_RAMP] > lo - 2
+                    and bt[q, F_START] - 2.0 * bt[q, F_RAMP] < hi + 2
+                ):
                     clear = False
                     break
             if not clear:

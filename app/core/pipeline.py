@@ -146,6 +146,9 @@ class DepthPipeline:
         gh = self.grid_shape[0]
         self._rows_per_cell = k
         self._row_y = (np.arange(gh)[:, None] * s + first + np.arange(k)[None, :]).ravel()
+        # ... and the rows averaged around them
+        extra = np.arange(-b.vertical_extra, b.vertical_extra + 1)
+        self._read_rows = np.unique(np.clip(self._row_y[:, None] + extra, 0, cam.height - 1))
         # per-frame scratch (about 10 MB), reused: results only keep copies out of it
         self._buffers = (
             np.empty((2, len(self._row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS)),
@@ -189,11 +192,16 @@ class DepthPipeline:
                         bands, counts, group)  # fmt: skip
         return bands, counts
 
+    @staticmethod
+    def _learning_rows(height: int) -> np.ndarray:
+        """The image rows :meth:`_learn_windows` measures."""
+        step = max(8, height // 48)
+        return np.arange(step // 2, height, step, dtype=np.int64)
+
     def _learn_windows(self, image, weights) -> np.ndarray:
         """Sliding window of the band detector: about two line intervals, learnt per pattern."""
         wide = max(31, image.shape[1] // 12) | 1
-        step = max(8, image.shape[0] // 48)
-        row_y = np.arange(step // 2, image.shape[0], step, dtype=np.int64)
+        row_y = self._learning_rows(image.shape[0])
         bands, counts = self._detect(image, weights, row_y, np.array([wide, wide]))
         wins = np.full(2, wide, np.int64)
         for p in range(2):
@@ -377,7 +385,14 @@ class DepthPipeline:
         self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
                                    else 255.0)  # fmt: skip
         weights = self._weights(image)
-        if self._windows is None or self._frames % cfg.crosstalk_every == 0:
+        relearn = self._windows is None or self._frames % cfg.crosstalk_every == 0
+        rows = self._read_rows
+        if relearn:
+            rows = np.union1d(rows, self._learning_rows(image.shape[0]))
+        # only the rows the detector reads
+        image = bd.fill_print(image, cfg.bands.print_fill_px,
+                              cfg.bands.min_contrast * self._full_scale, rows)  # fmt: skip
+        if relearn:
             # relearnt now and then: the first frame may have had merged or no bands
             self._windows = self._learn_windows(image, weights)
         t1 = time.perf_counter()
