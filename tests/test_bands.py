@@ -240,9 +240,11 @@ def _overlap_case(B, w, sigma, over, marks=()):
 @pytest.mark.parametrize(
     "B,w,sigma,over",  # over = L + w - B
     [
-        _overlap_case(30.0, 3.0, 1.0, -1.0, _TOUCHING),
-        _overlap_case(30.0, 3.0, 1.0, 0.0, _TOUCHING),
-        _overlap_case(30.0, 3.0, 1.0, 2.0, _TOUCHING),
+        # (these three: the tails of touching bands, subtracted from the gap level, no longer
+        # hide the overlap)
+        _overlap_case(30.0, 3.0, 1.0, -1.0),
+        _overlap_case(30.0, 3.0, 1.0, 0.0),
+        _overlap_case(30.0, 3.0, 1.0, 2.0),
         _overlap_case(30.0, 3.0, 1.0, 3.0),
         _overlap_case(30.0, 3.0, 1.0, 5.0, _TOUCHING),
         _overlap_case(20.0, 5.0, 1.4, 0.0, _TOUCHING),

@@ -27,6 +27,7 @@ camera pixels is known (:mod:`lightflow.app.core.flow`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -326,6 +327,140 @@ def _gap_level(x, g0, g1):
     return level, outer / (2 * t) - inner / (b - t - (a + t) + 1)
 
 
+#: the 50 % to 20 % distance of an erf edge, in units of its sigma
+ERF_20_50 = 0.8416
+
+
+@nb.njit(cache=True)
+def _tails(g0, g1, edges, left, right):
+    """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
+    of band ``left``'s right edge and band ``right``'s left edge (rows of ``edges``:
+    height, left and right half-height points, edge sigma; NaN or out of range: none).
+    """
+    q = (g1 - g0 + 1) // 4
+    lo = g0 + q
+    hi = g1 - q
+    if hi < lo:
+        return 0.0
+    n_e = edges.shape[0]
+    total = 0.0
+    for i in range(lo, hi + 1):
+        if 0 <= left < n_e and edges[left, 0] > 0.0 and edges[left, 3] > 0.0:
+            d = (i - edges[left, 2]) / (math.sqrt(2.0) * edges[left, 3])
+            total += edges[left, 0] * 0.5 * math.erfc(d)
+        if 0 <= right < n_e and edges[right, 0] > 0.0 and edges[right, 3] > 0.0:
+            d = (edges[right, 1] - i) / (math.sqrt(2.0) * edges[right, 3])
+            total += edges[right, 0] * 0.5 * math.erfc(d)
+    return total / (hi - lo + 1)
+
+
+@nb.njit(cache=True)
+def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast, sym_tol, out):
+    """Measure band ``k`` (samples ``a..b`` above the mid-level) of row ``x`` into ``out[k]``.
+
+    ``bl``/``br`` are the background levels of the gaps on its left and right,
+    centred at ``cl``/``cr``, less the neighbours' tails ``tl``/``tr`` in them
+    (:func:`_tails`), and ``vl``/``vr`` how V-shaped they are
+    (:func:`_gap_level`).  Leaves ``F_VALID`` at a rejection code when the band
+    cannot be measured; then its other fields stay NaN.
+    """
+    n = x.shape[0]
+    for f in range(N_FIELDS):
+        out[k, f] = np.nan
+    out[k, F_START] = a
+    out[k, F_END] = b
+    # first pass: half of the maximum
+    jm = a
+    top = x[a]
+    for i in range(a + 1, b + 1):
+        v = x[i]
+        if v > top:
+            top = v
+            jm = i
+    bg = 0.5 * (bl + br)
+    out[k, F_VALID] = BAND_FAINT  # until it is measured
+    if top - bg < min_contrast:
+        return
+    level1 = bg + 0.5 * (top - bg)
+    sl = _walk_left(x, jm, level1)
+    sr = _walk_right(x, jm, level1)
+    xl = _at_left(x, sl, level1)
+    xr = _at_right(x, sr, level1)
+    if xl < 0 or xr < 0:
+        return
+    # plateau: mean over the central half of the band (the max alone is biased by noise)
+    # (the same definition as lightflow.app.core.profile_model.measure)
+    l1 = xr - xl
+    p0 = int(np.ceil(xl + 0.25 * l1))
+    p1 = int(np.floor(xr - 0.25 * l1))
+    if p1 >= p0:
+        s = 0.0
+        for i in range(p0, p1 + 1):
+            s += x[i]
+        peak = s / (p1 - p0 + 1)
+    else:
+        peak = top
+    # background interpolated to the band centre
+    mid = 0.5 * (xl + xr)
+    bg = bl + (br - bl) * (mid - cl) / (cr - cl)
+    height = peak - bg
+    if height < min_contrast:
+        return
+    level = bg + 0.5 * height
+    # a walk to a lower level passes where the walk to a higher one ended
+    # (every sample from there to the peak is above both): it starts there
+    wl = _walk_left(x, sl if level <= level1 else jm, level)
+    wr = _walk_right(x, sr if level <= level1 else jm, level)
+    xl = _at_left(x, wl, level)
+    xr = _at_right(x, wr, level)
+    if xl < 0 or xr < 0:
+        return
+    # ramps at 20 % height: symmetric for a band the surface carried whole
+    level20 = bg + 0.2 * height
+    x20l = _at_left(x, _walk_left(x, wl if level20 <= level else jm, level20), level20)
+    x20r = _at_right(x, _walk_right(x, wr if level20 <= level else jm, level20), level20)
+    if x20l < 0 or x20r < 0:
+        return
+    ramp_l = xl - x20l
+    ramp_r = x20r - xr
+    out[k, F_CENTRE] = 0.5 * (xl + xr)
+    out[k, F_LENGTH] = xr - xl
+    out[k, F_START] = xl
+    out[k, F_END] = xr
+    out[k, F_HEIGHT] = height
+    out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
+    # the first failed check names the reason (BAND_*)
+    # equal ramps: a band cut by an edge has one sharp side
+    code = BAND_VALID
+    if abs(ramp_l - ramp_r) > sym_tol + 0.3 * max(ramp_l, ramp_r):
+        code = BAND_CUT
+    # the gaps must reach the floor: between touching bands the "gap" is two ramps
+    # and its level is well above the lowest level around
+    # (as measured: tails that fill a gap this much are merged bands)
+    raised = bg + tl + (tr - tl) * (mid - cl) / (cr - cl)
+    if code > 0 and raised - thr[1, jm] > 0.25 * height:
+        code = BAND_OVERLAP
+    # ... and a V-shaped gap (two ramps meeting) is lower in its middle than around
+    if code > 0 and max(vl, vr) > 0.12 * height:
+        code = BAND_OVERLAP
+    # a swept line leaves a plateau without dips; print or an edge inside the band does
+    i0 = int(np.ceil(xl + 0.5 * ramp_l))
+    i1 = int(np.floor(xr - 0.5 * ramp_r))
+    if code > 0:
+        for i in range(i0, i1 + 1):
+            if x[i] < bg + 0.6 * height:
+                code = BAND_IRREGULAR
+                break
+    # a band running into the image border may be cut: it must visibly end before it
+    margin = 2.0 * max(ramp_l, ramp_r) + 4.0
+    if x20l - margin < 0 or x20r + margin > n - 1:
+        out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
+        code = BAND_CUT
+    # support of the band (ramp extrapolated to zero) must leave a flat gap
+    out[k, F_INTERVAL] = (ramp_l + ramp_r) / 0.6  # temporarily: full ramp length
+    out[k, F_VALID] = code
+
+
 @nb.njit(cache=True)
 def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
@@ -388,96 +523,38 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gap_done[k + 1] = True
         bl, vl = gap_lv[k], gap_dp[k]
         br, vr = gap_lv[k + 1], gap_dp[k + 1]
-        # first pass: half of the maximum
-        jm = a
-        top = x[a]
-        for i in range(a + 1, b + 1):
-            v = x[i]
-            if v > top:
-                top = v
-                jm = i
-        bg = 0.5 * (bl + br)
-        out[k, F_VALID] = BAND_FAINT  # until it is measured
-        if top - bg < min_contrast:
-            continue
-        level1 = bg + 0.5 * (top - bg)
-        sl = _walk_left(x, jm, level1)
-        sr = _walk_right(x, jm, level1)
-        xl = _at_left(x, sl, level1)
-        xr = _at_right(x, sr, level1)
-        if xl < 0 or xr < 0:
-            continue
-        # plateau: mean over the central half of the band (the max alone is biased by noise)
-        # (the same definition as lightflow.app.core.profile_model.measure)
-        l1 = xr - xl
-        p0 = int(np.ceil(xl + 0.25 * l1))
-        p1 = int(np.floor(xr - 0.25 * l1))
-        if p1 >= p0:
-            s = 0.0
-            for i in range(p0, p1 + 1):
-                s += x[i]
-            peak = s / (p1 - p0 + 1)
-        else:
-            peak = top
-        # background interpolated to the band centre
-        mid = 0.5 * (xl + xr)
         cl = 0.5 * (gl0 + gl1)
         cr = 0.5 * (gr0 + gr1)
-        bg = bl + (br - bl) * (mid - cl) / (cr - cl)
-        height = peak - bg
-        if height < min_contrast:
-            continue
-        level = bg + 0.5 * height
-        # a walk to a lower level passes where the walk to a higher one ended
-        # (every sample from there to the peak is above both): it starts there
-        wl = _walk_left(x, sl if level <= level1 else jm, level)
-        wr = _walk_right(x, sr if level <= level1 else jm, level)
-        xl = _at_left(x, wl, level)
-        xr = _at_right(x, wr, level)
-        if xl < 0 or xr < 0:
-            continue
-        # ramps at 20 % height: symmetric for a band the surface carried whole
-        level20 = bg + 0.2 * height
-        x20l = _at_left(x, _walk_left(x, wl if level20 <= level else jm, level20), level20)
-        x20r = _at_right(x, _walk_right(x, wr if level20 <= level else jm, level20), level20)
-        if x20l < 0 or x20r < 0:
-            continue
-        ramp_l = xl - x20l
-        ramp_r = x20r - xr
-        out[k, F_CENTRE] = 0.5 * (xl + xr)
-        out[k, F_LENGTH] = xr - xl
-        out[k, F_START] = xl
-        out[k, F_END] = xr
-        out[k, F_HEIGHT] = height
-        out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
-        # the first failed check names the reason (BAND_*)
-        # equal ramps: a band cut by an edge has one sharp side
-        code = BAND_VALID
-        if abs(ramp_l - ramp_r) > sym_tol + 0.3 * max(ramp_l, ramp_r):
-            code = BAND_CUT
-        # the gaps must reach the floor: between touching bands the "gap" is two ramps
-        # and its level is well above the lowest level around
-        if code > 0 and bg - thr[1, jm] > 0.25 * height:
-            code = BAND_OVERLAP
-        # ... and a V-shaped gap (two ramps meeting) is lower in its middle than around
-        if code > 0 and max(vl, vr) > 0.12 * height:
-            code = BAND_OVERLAP
-        # a swept line leaves a plateau without dips; print or an edge inside the band does
-        i0 = int(np.ceil(xl + 0.5 * ramp_l))
-        i1 = int(np.floor(xr - 0.5 * ramp_r))
-        if code > 0:
-            for i in range(i0, i1 + 1):
-                if x[i] < bg + 0.6 * height:
-                    code = BAND_IRREGULAR
-                    break
-        # a band running into the image border may be cut: it must visibly end before it
-        margin = 2.0 * max(ramp_l, ramp_r) + 4.0
-        if x20l - margin < 0 or x20r + margin > n - 1:
-            out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
-            code = BAND_CUT
-        # support of the band (ramp extrapolated to zero) must leave a flat gap
-        out[k, F_INTERVAL] = (ramp_l + ramp_r) / 0.6  # temporarily: full ramp length
-        out[k, F_VALID] = code
+        _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, 0.0, 0.0, min_contrast, sym_tol,
+                      out)  # fmt: skip
+    # A narrow gap never reaches the background: the tails of the bands on both sides
+    # raise its level, and the half-height crossings of both bands move inwards (by about
+    # the raise times the line width: 1-2 % of a sweep of two thirds of the interval).
+    # Subtract the tails, modelled as an erf edge with each band's own ramp, and measure
+    # again.  Isolated bands are untouched.
+    if ns > 1:
+        edges = np.empty((ns, 4))  # height, left and right half-height points, edge sigma
+        for k in range(ns):
+            edges[k, 0] = out[k, F_HEIGHT]
+            edges[k, 1] = out[k, F_START]
+            edges[k, 2] = out[k, F_END]
+            edges[k, 3] = out[k, F_RAMP] / ERF_20_50
+        for k in range(ns):
+            if not (edges[k, 0] > 0.0):
+                continue
+            a = seg_a[k]
+            b = seg_b[k]
+            gl0 = seg_b[k - 1] + 1 if k > 0 else max(0, a - 24)
+            gl1 = a - 1
+            gr0 = b + 1
+            gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
+            tl = _tails(gl0, gl1, edges, k - 1, k)
+            tr = _tails(gr0, gr1, edges, k, k + 1)
+            if max(tl, tr) < 0.002 * edges[k, 0]:
+                continue
+            _measure_band(x, thr, k, a, b, gap_lv[k] - tl, gap_lv[k + 1] - tr, gap_dp[k],
+                          gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), tl, tr,
+                          min_contrast, sym_tol, out)  # fmt: skip
     # intervals from neighbour centres; consistency and gap checks
     for k in range(ns):
         ramp = out[k, F_INTERVAL]

@@ -255,7 +255,7 @@ def _sweeps(
                 if not (L > lo_factor * line + lo_margin):
                     why[i, j] = cz.STATIC  # no measurable sweep: a (nearly) static line
                     break
-                if L + line + 2.0 * sigma > B:
+                if L + line + 1.0 * sigma > B:
                     why[i, j] = cz.OVERLAP  # swept line and its blur fill the interval
                     break
                 sens[p, i, j] = spread / B
