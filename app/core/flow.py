@@ -57,6 +57,10 @@ class FlowParams:
         exceeds the line width in camera pixels times this factor plus
         ``static_margin_px``.
     static_margin_px : float
+    calibrated_static_factor, calibrated_static_margin_px : float
+        The same with a blur measured by ``lightflow rig blur``: a sweep shorter
+        than the line only shows in the ramps, against the blur, so a known blur
+        lets shorter sweeps count.
     measure_factor, measure_margin_px : float
         Sweeps of single cells below ``measure_factor`` line widths plus
         ``measure_margin_px`` are not measured at all (a static line).
@@ -82,6 +86,10 @@ class FlowParams:
     smoothing_px: float = 24.0
     static_factor: float = 0.9
     static_margin_px: float = 1.0
+    # chosen on the tuning rigs with their measured blur (fan 1 ms, balls 5 and 8 ms:
+    # coverage 5-25 % -> 14-34 %, the fan's median 5.9 -> 12.7 mm, the balls' within 1 mm)
+    calibrated_static_factor: float = 0.6
+    calibrated_static_margin_px: float = 0.5
     measure_factor: float = 0.5
     measure_margin_px: float = 0.5
     sweep_smoothing_px: float = 8.0
@@ -503,8 +511,10 @@ class FlowModel:
             self.single,
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
-            params.measure_factor, params.measure_margin_px, params.static_factor,
-            params.static_margin_px, self._fitted, self.blur_rel_error, still, sweeps, moving_at,
+            params.measure_factor, params.measure_margin_px,
+            params.calibrated_static_factor if self.calibrated else params.static_factor,
+            params.calibrated_static_margin_px if self.calibrated else params.static_margin_px,
+            self._fitted, self.blur_rel_error, still, sweeps, moving_at,
             pitch,
             interval_ratio, banded, sens, why,
         )  # fmt: skip
