@@ -485,3 +485,26 @@ def test_fill_print_restores_bands_under_small_print_and_leaves_the_rest():
     diff = fill_print(ink, 13, min_dip=6.0)[10:14, 50:53].astype(int) - noisy[10:14, 50:53]
     assert np.abs(diff).max() <= 10
     assert fill_print(printed, 1, min_dip=6.0) is printed
+
+
+def test_bands_further_apart_than_the_window_keep_their_interval():
+    """Sparse lines with long gaps, the window learnt too short (a tilted board's pattern).
+
+    In a gap longer than the sliding window the mid-level cuts the noise into faint
+    "bands"; the real bands' neighbours are past them (once: every band was
+    irregular, for want of a neighbour).
+    """
+    rng = np.random.default_rng(5)
+    B, L, w, sigma = 150.0, 28.0, 4.0, 1.2
+    c = centres_for(B, 6, 0.4)
+    v = band_row(int(c[-1] + 80), c, L, w, sigma) + rng.normal(0.0, 0.6, int(c[-1] + 80))
+    img = np.ascontiguousarray(np.repeat(np.repeat(v[None, :, None], 3, 0), 3, 2))
+    bands = np.empty((1, 1, MAX_BANDS, N_FIELDS))
+    counts = np.empty((1, 1), np.int64)
+    detect_bands(img, WEIGHTS, np.array([1], np.int64), np.array([67], np.int64), 255.0,
+                 PARAMS, bands, counts)  # fmt: skip
+    b = bands[0, 0, : counts[0, 0]]
+    valid = b[b[:, F_VALID] == 1.0]
+    assert len(valid) >= 4  # the interior ones (and more)
+    np.testing.assert_allclose(valid[:, F_INTERVAL], B, rtol=0.01)
+    np.testing.assert_allclose(valid[:, F_LENGTH], L, rtol=0.02)

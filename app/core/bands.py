@@ -560,9 +560,22 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         ramp = out[k, F_INTERVAL]
         out[k, F_INTERVAL] = np.nan
         c0 = out[k, F_CENTRE]
-        cp = out[k - 1, F_CENTRE] if k > 0 else np.nan
-        cn = out[k + 1, F_CENTRE] if k < ns - 1 else np.nan
+        kp = k - 1
+        kn = k + 1
+        cp = out[kp, F_CENTRE] if kp >= 0 else np.nan
+        cn = out[kn, F_CENTRE] if kn < ns else np.nan
         valid = out[k, F_VALID] > 0.0
+        if np.isfinite(c0) and not (np.isfinite(cp) or np.isfinite(cn)):
+            # faint on both sides: in a gap longer than the detector's window the
+            # mid-level cuts the noise into faint "bands"; the neighbours are past them
+            while kp >= 0 and out[kp, F_VALID] == BAND_FAINT:
+                kp -= 1
+            while kn < ns and out[kn, F_VALID] == BAND_FAINT:
+                kn += 1
+            if kp >= 0 and kn < ns and np.isfinite(out[kp, F_CENTRE]) \
+                    and np.isfinite(out[kn, F_CENTRE]):  # fmt: skip
+                cp = out[kp, F_CENTRE]
+                cn = out[kn, F_CENTRE]
         if not np.isfinite(c0) or not (np.isfinite(cp) or np.isfinite(cn)):
             if valid:
                 out[k, F_VALID] = BAND_IRREGULAR  # no neighbour to measure an interval
@@ -606,8 +619,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         if support > interval - min_gap:
             out[k, F_VALID] = BAND_OVERLAP
             continue
-        hp = out[k - 1, F_HEIGHT]
-        hn = out[k + 1, F_HEIGHT]
+        hp = out[kp, F_HEIGHT]
+        hn = out[kn, F_HEIGHT]
         h0 = out[k, F_HEIGHT]
         if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
             out[k, F_VALID] = BAND_IRREGULAR
