@@ -1,7 +1,7 @@
 """lightflow's application package: the processing core and the application around it.
 
 Importing it keys numba's on-disk kernel cache by the source of lightflow's
-jitted modules (see :func:`_key_numba_cache`).
+jitted modules (see :func:`_key_numba_cache`) and keeps OpenBLAS to one thread.
 """
 
 from __future__ import annotations
@@ -34,3 +34,9 @@ def _key_numba_cache() -> None:
 
 
 _key_numba_cache()
+
+# lightflow's matrices are small and its kernels run on their own thread per core
+# (core/threads.py): OpenBLAS's threads only spin-wait beside them, a few per cent of
+# the CPU of a replay.  Effective when lightflow is imported before numpy; the
+# user's setting wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

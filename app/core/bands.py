@@ -331,26 +331,36 @@ def _gap_level(x, g0, g1):
 ERF_20_50 = 0.8416
 
 
+@nb.njit(cache=True, inline="always")
+def _tail_at(i, edges, left, right):
+    """At sample ``i``, the tails of band ``left``'s right edge and band ``right``'s left
+    edge (rows of ``edges``: height, left and right half-height points, edge sigma;
+    NaN or out of range: none); nothing beyond four sigmas."""
+    n_e = edges.shape[0]
+    total = 0.0
+    if 0 <= left < n_e and edges[left, 0] > 0.0 and edges[left, 3] > 0.0:
+        d = (i - edges[left, 2]) / (math.sqrt(2.0) * edges[left, 3])
+        if d < 4.0:
+            total += edges[left, 0] * 0.5 * math.erfc(d)
+    if 0 <= right < n_e and edges[right, 0] > 0.0 and edges[right, 3] > 0.0:
+        d = (edges[right, 1] - i) / (math.sqrt(2.0) * edges[right, 3])
+        if d < 4.0:
+            total += edges[right, 0] * 0.5 * math.erfc(d)
+    return total
+
+
 @nb.njit(cache=True)
 def _tails(g0, g1, edges, left, right):
     """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
-    of band ``left``'s right edge and band ``right``'s left edge (rows of ``edges``:
-    height, left and right half-height points, edge sigma; NaN or out of range: none).
-    """
+    of the bands on its two sides (:func:`_tail_at`)."""
     q = (g1 - g0 + 1) // 4
     lo = g0 + q
     hi = g1 - q
     if hi < lo:
         return 0.0
-    n_e = edges.shape[0]
     total = 0.0
     for i in range(lo, hi + 1):
-        if 0 <= left < n_e and edges[left, 0] > 0.0 and edges[left, 3] > 0.0:
-            d = (i - edges[left, 2]) / (math.sqrt(2.0) * edges[left, 3])
-            total += edges[left, 0] * 0.5 * math.erfc(d)
-        if 0 <= right < n_e and edges[right, 0] > 0.0 and edges[right, 3] > 0.0:
-            d = (edges[right, 1] - i) / (math.sqrt(2.0) * edges[right, 3])
-            total += edges[right, 0] * 0.5 * math.erfc(d)
+        total += _tail_at(i, edges, left, right)
     return total / (hi - lo + 1)
 
 
@@ -539,8 +549,21 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             edges[k, 1] = out[k, F_START]
             edges[k, 2] = out[k, F_END]
             edges[k, 3] = out[k, F_RAMP] / ERF_20_50
+        # each gap serves two bands: its tails once (gap k lies left of band k)
+        tails = np.zeros(ns + 1)
+        for g in range(ns + 1):
+            if not ((g > 0 and edges[g - 1, 0] > 0.0) or (g < ns and edges[g, 0] > 0.0)):
+                continue
+            g0 = seg_b[g - 1] + 1 if g > 0 else max(0, seg_a[0] - 24)
+            g1 = seg_a[g] - 1 if g < ns else min(n - 1, seg_b[ns - 1] + 24)
+            if g1 >= g0:
+                tails[g] = _tails(g0, g1, edges, g - 1, g)
         for k in range(ns):
             if not (edges[k, 0] > 0.0):
+                continue
+            tl = tails[k]
+            tr = tails[k + 1]
+            if max(tl, tr) < 0.002 * edges[k, 0]:
                 continue
             a = seg_a[k]
             b = seg_b[k]
@@ -548,10 +571,6 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             gl1 = a - 1
             gr0 = b + 1
             gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
-            tl = _tails(gl0, gl1, edges, k - 1, k)
-            tr = _tails(gr0, gr1, edges, k, k + 1)
-            if max(tl, tr) < 0.002 * edges[k, 0]:
-                continue
             _measure_band(x, thr, k, a, b, gap_lv[k] - tl, gap_lv[k + 1] - tr, gap_dp[k],
                           gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), tl, tr,
                           min_contrast, sym_tol, out)  # fmt: skip

@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
 _local = threading.local()
+_threads: int | None = None
 
 
 def _mark_worker() -> None:
@@ -36,7 +37,10 @@ os.register_at_fork(after_in_child=_forget_pool)
 
 def threads() -> int:
     """Number of threads :func:`run_rows` uses: one per core (``os.cpu_count()``)."""
-    return max(1, os.cpu_count() or 1)
+    global _threads
+    if _threads is None:  # asked about ten times per frame: once is enough
+        _threads = max(1, os.cpu_count() or 1)
+    return _threads
 
 
 def shared_pool() -> ThreadPoolExecutor:
