@@ -513,7 +513,7 @@ class V4L2Camera(Camera):
                         self._counts["failures"] += 1
                         continue
                     # bytes(): a copy that stays ours once the buffer is queued again
-                    stamp = buf.timestamp.tv_sec + buf.timestamp.tv_usec * 1e-6
+                    stamp = buf.timestamp.secs + buf.timestamp.usecs * 1e-6
                     item = (buf.sequence, bytes(self._maps[buf.index][: buf.bytesused]), stamp)
                 finally:
                     dev.qbuf(buf.index)

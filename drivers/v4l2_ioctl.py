@@ -1,28 +1,24 @@
-"""The thin V4L2 layer: kernel structs (ctypes), ioctl numbers, and a swappable I/O object.
+"""The thin V4L2 layer: linuxpy's kernel structs and ioctl numbers, and a swappable I/O object.
 
-Layers, bottom up (as in linuxpy):
+Layers, bottom up:
 
 1. :class:`LinuxIO` — ``open`` / ``ioctl`` / ``mmap`` / ``wait_readable`` /
    ``close`` on real file descriptors.  Anything with these methods can stand
    in for it (tests use a fake, because no V4L2 device can exist there).
-2. :class:`V4L2Device` — one typed method per ioctl.  Every call packs a
-   ctypes struct into bytes, lets the I/O object run the ioctl on those bytes,
-   and unpacks the answer: the I/O object only ever sees bytes.
+2. :class:`V4L2Device` — one typed method per ioctl.  Every call packs one of
+   linuxpy's ctypes structs (``linuxpy.video.raw``: the layouts of
+   ``linux/videodev2.h``, generated from the header, and its ``IOC`` request
+   numbers and enums) into bytes, lets the I/O object run the ioctl on those
+   bytes, and unpacks the answer: the I/O object only ever sees bytes.
 3. :class:`lightflow.drivers.v4l2.V4L2Camera` — the camera on top.
 
-Struct layouts are those of ``linux/videodev2.h`` on 64-bit Linux.
-
-Why not linuxpy itself (checked with linuxpy 0.25.0): its ``Device`` takes an
-``io`` object, but that object only supplies ``open``, ``os`` and ``select``
-(``linuxpy/io.py``, class ``IO``).  Every ioctl goes through the module
-function ``linuxpy.ioctl.ioctl``, which calls ``fcntl.ioctl`` on the real file
-descriptor, and buffers are mapped with ``mmap.mmap`` on it
-(``linuxpy/video/device.py``, ``mem_map``).  A test without a V4L2 device can
-only fake those by patching linuxpy's module internals, which is what
-linuxpy's own tests do (``mock.patch("linuxpy.ioctl.fcntl.ioctl", ...)``,
-``mock.patch("linuxpy.video.device.mmap.mmap", ...)`` in
-``tests/test_video.py``).  This layer keeps the I/O object that covers all
-five operations, so tests swap it without patching anything.
+Why linuxpy's structs but not its ``Device``: that object's swappable ``io``
+supplies only ``open``, ``os`` and ``select`` (``linuxpy/io.py``); every ioctl
+goes through ``fcntl.ioctl`` and every buffer through ``mmap.mmap`` on the real
+file descriptor, so a test without a device could only patch linuxpy's
+module internals (as linuxpy's own tests do).  Layer 1 here covers all five
+operations, so tests swap it without patching anything, and nothing of the
+kernel ABI is written by hand.  linuxpy is GPL-3.0-or-later.
 """
 
 from __future__ import annotations
@@ -35,33 +31,31 @@ import os
 import select
 from typing import Protocol
 
-u8, u32, s32 = ctypes.c_uint8, ctypes.c_uint32, ctypes.c_int32
+from linuxpy.video import raw
 
-# -- constants --------------------------------------------------------------
+# -- constants and structs: linuxpy's ---------------------------------------
 
-BUF_TYPE_VIDEO_CAPTURE = 1
-MEMORY_MMAP = 1
-FIELD_NONE = 1
+BUF_TYPE_VIDEO_CAPTURE = int(raw.BufType.VIDEO_CAPTURE)
+MEMORY_MMAP = int(raw.Memory.MMAP)
+FIELD_NONE = int(raw.Field.NONE)
 
-CAP_VIDEO_CAPTURE = 0x00000001
-CAP_STREAMING = 0x04000000
-CAP_DEVICE_CAPS = 0x80000000
-CAP_TIMEPERFRAME = 0x1000
+CAP_VIDEO_CAPTURE = int(raw.Capability.VIDEO_CAPTURE)
+CAP_STREAMING = int(raw.Capability.STREAMING)
+CAP_DEVICE_CAPS = int(raw.Capability.DEVICE_CAPS)
+CAP_TIMEPERFRAME = int(raw.Capability.TIMEPERFRAME)
 
-BUF_FLAG_ERROR = 0x40
-CTRL_FLAG_DISABLED = 0x0001
+BUF_FLAG_ERROR = int(raw.BufferFlag.ERROR)
+CTRL_FLAG_DISABLED = int(raw.ControlFlag.DISABLED)
 
-FRMSIZE_TYPE_DISCRETE = 1
+FRMSIZE_TYPE_DISCRETE = int(raw.Frmsizetypes.DISCRETE)
 
-CID_BASE = 0x00980900
-CID_AUTO_WHITE_BALANCE = CID_BASE + 12
-CID_AUTOGAIN = CID_BASE + 18
-CID_GAIN = CID_BASE + 19
-CID_CAMERA_CLASS_BASE = 0x009A0900
-CID_EXPOSURE_AUTO = CID_CAMERA_CLASS_BASE + 1
-CID_EXPOSURE_ABSOLUTE = CID_CAMERA_CLASS_BASE + 2
-EXPOSURE_AUTO = 0
-EXPOSURE_MANUAL = 1
+CID_AUTO_WHITE_BALANCE = int(raw.ControlID.AUTO_WHITE_BALANCE)
+CID_AUTOGAIN = int(raw.ControlID.AUTOGAIN)
+CID_GAIN = int(raw.ControlID.GAIN)
+CID_EXPOSURE_AUTO = int(raw.ControlID.EXPOSURE_AUTO)
+CID_EXPOSURE_ABSOLUTE = int(raw.ControlID.EXPOSURE_ABSOLUTE)
+EXPOSURE_AUTO = int(raw.ExposureAutoType.AUTO)
+EXPOSURE_MANUAL = int(raw.ExposureAutoType.MANUAL)
 #: V4L2_CID_EXPOSURE_ABSOLUTE counts in units of 100 µs
 EXPOSURE_UNIT_S = 100e-6
 
@@ -77,132 +71,41 @@ def fourcc_str(value: int) -> str:
     return bytes((value >> s) & 0xFF for s in (0, 8, 16, 24)).decode("ascii", "replace")
 
 
-# -- structs ----------------------------------------------------------------
+Capability = raw.v4l2_capability
+FmtDesc = raw.v4l2_fmtdesc
+PixFormat = raw.v4l2_pix_format
+Format = raw.v4l2_format
+Fract = raw.v4l2_fract
+CaptureParm = raw.v4l2_captureparm
+StreamParm = raw.v4l2_streamparm
+QueryCtrl = raw.v4l2_queryctrl
+Control = raw.v4l2_control
+RequestBuffers = raw.v4l2_requestbuffers
+Buffer = raw.v4l2_buffer
+FrmSizeEnum = raw.v4l2_frmsizeenum
 
 
-class Capability(ctypes.Structure):
-    _fields_ = [("driver", u8 * 16), ("card", u8 * 32), ("bus_info", u8 * 32),
-                ("version", u32), ("capabilities", u32), ("device_caps", u32),
-                ("reserved", u32 * 3)]  # fmt: skip
+def _request(ioc: int) -> int:
+    # linuxpy's numbers are signed C ints; the kernel's (and fcntl's) are unsigned
+    return int(ioc) & 0xFFFFFFFF
 
 
-class FmtDesc(ctypes.Structure):
-    _fields_ = [("index", u32), ("type", u32), ("flags", u32), ("description", u8 * 32),
-                ("pixelformat", u32), ("mbus_code", u32), ("reserved", u32 * 3)]  # fmt: skip
-
-
-class PixFormat(ctypes.Structure):
-    _fields_ = [("width", u32), ("height", u32), ("pixelformat", u32), ("field", u32),
-                ("bytesperline", u32), ("sizeimage", u32), ("colorspace", u32), ("priv", u32),
-                ("flags", u32), ("ycbcr_enc", u32), ("quantization", u32),
-                ("xfer_func", u32)]  # fmt: skip
-
-
-class _FormatUnion(ctypes.Union):
-    # The kernel union holds pointers (struct v4l2_window): 8-byte aligned.
-    _fields_ = [("pix", PixFormat), ("raw_data", u8 * 200), ("_align", ctypes.c_void_p * 25)]
-
-
-class Format(ctypes.Structure):
-    _fields_ = [("type", u32), ("fmt", _FormatUnion)]
-
-
-class Fract(ctypes.Structure):
-    _fields_ = [("numerator", u32), ("denominator", u32)]
-
-
-class CaptureParm(ctypes.Structure):
-    _fields_ = [("capability", u32), ("capturemode", u32), ("timeperframe", Fract),
-                ("extendedmode", u32), ("readbuffers", u32), ("reserved", u32 * 4)]  # fmt: skip
-
-
-class _ParmUnion(ctypes.Union):
-    _fields_ = [("capture", CaptureParm), ("raw_data", u8 * 200)]
-
-
-class StreamParm(ctypes.Structure):
-    _fields_ = [("type", u32), ("parm", _ParmUnion)]
-
-
-class QueryCtrl(ctypes.Structure):
-    _fields_ = [("id", u32), ("type", u32), ("name", u8 * 32), ("minimum", s32),
-                ("maximum", s32), ("step", s32), ("default_value", s32), ("flags", u32),
-                ("reserved", u32 * 2)]  # fmt: skip
-
-
-class Control(ctypes.Structure):
-    _fields_ = [("id", u32), ("value", s32)]
-
-
-class RequestBuffers(ctypes.Structure):
-    _fields_ = [("count", u32), ("type", u32), ("memory", u32), ("capabilities", u32),
-                ("flags", u8), ("reserved", u8 * 3)]  # fmt: skip
-
-
-class TimeVal(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_usec", ctypes.c_long)]
-
-
-class TimeCode(ctypes.Structure):
-    _fields_ = [("type", u32), ("flags", u32), ("frames", u8), ("seconds", u8),
-                ("minutes", u8), ("hours", u8), ("userbits", u8 * 4)]  # fmt: skip
-
-
-class _BufferM(ctypes.Union):
-    _fields_ = [("offset", u32), ("userptr", ctypes.c_ulong), ("planes", ctypes.c_void_p),
-                ("fd", s32)]  # fmt: skip
-
-
-class Buffer(ctypes.Structure):
-    _fields_ = [("index", u32), ("type", u32), ("bytesused", u32), ("flags", u32),
-                ("field", u32), ("timestamp", TimeVal), ("timecode", TimeCode),
-                ("sequence", u32), ("memory", u32), ("m", _BufferM), ("length", u32),
-                ("reserved2", u32), ("request_fd", s32)]  # fmt: skip
-
-
-class FrmSizeDiscrete(ctypes.Structure):
-    _fields_ = [("width", u32), ("height", u32)]
-
-
-class FrmSizeStepwise(ctypes.Structure):
-    _fields_ = [("min_width", u32), ("max_width", u32), ("step_width", u32),
-                ("min_height", u32), ("max_height", u32), ("step_height", u32)]  # fmt: skip
-
-
-class _FrmSizeUnion(ctypes.Union):
-    _fields_ = [("discrete", FrmSizeDiscrete), ("stepwise", FrmSizeStepwise)]
-
-
-class FrmSizeEnum(ctypes.Structure):
-    _fields_ = [("index", u32), ("pixel_format", u32), ("type", u32), ("size", _FrmSizeUnion),
-                ("reserved", u32 * 2)]  # fmt: skip
-
-
-# -- ioctl numbers (asm-generic/ioctl.h) ------------------------------------
-
-_IOC_WRITE, _IOC_READ = 1, 2
-
-
-def _ioc(direction: int, nr: int, struct: type) -> int:
-    return direction << 30 | ctypes.sizeof(struct) << 16 | ord("V") << 8 | nr
-
-
-VIDIOC_QUERYCAP = _ioc(_IOC_READ, 0, Capability)
-VIDIOC_ENUM_FMT = _ioc(_IOC_READ | _IOC_WRITE, 2, FmtDesc)
-VIDIOC_G_FMT = _ioc(_IOC_READ | _IOC_WRITE, 4, Format)
-VIDIOC_S_FMT = _ioc(_IOC_READ | _IOC_WRITE, 5, Format)
-VIDIOC_REQBUFS = _ioc(_IOC_READ | _IOC_WRITE, 8, RequestBuffers)
-VIDIOC_QUERYBUF = _ioc(_IOC_READ | _IOC_WRITE, 9, Buffer)
-VIDIOC_QBUF = _ioc(_IOC_READ | _IOC_WRITE, 15, Buffer)
-VIDIOC_DQBUF = _ioc(_IOC_READ | _IOC_WRITE, 17, Buffer)
-VIDIOC_STREAMON = _ioc(_IOC_WRITE, 18, ctypes.c_int)
-VIDIOC_STREAMOFF = _ioc(_IOC_WRITE, 19, ctypes.c_int)
-VIDIOC_G_PARM = _ioc(_IOC_READ | _IOC_WRITE, 21, StreamParm)
-VIDIOC_S_PARM = _ioc(_IOC_READ | _IOC_WRITE, 22, StreamParm)
-VIDIOC_G_CTRL = _ioc(_IOC_READ | _IOC_WRITE, 27, Control)
-VIDIOC_S_CTRL = _ioc(_IOC_READ | _IOC_WRITE, 28, Control)
-VIDIOC_QUERYCTRL = _ioc(_IOC_READ | _IOC_WRITE, 36, QueryCtrl)
-VIDIOC_ENUM_FRAMESIZES = _ioc(_IOC_READ | _IOC_WRITE, 74, FrmSizeEnum)
+VIDIOC_QUERYCAP = _request(raw.IOC.QUERYCAP)
+VIDIOC_ENUM_FMT = _request(raw.IOC.ENUM_FMT)
+VIDIOC_G_FMT = _request(raw.IOC.G_FMT)
+VIDIOC_S_FMT = _request(raw.IOC.S_FMT)
+VIDIOC_REQBUFS = _request(raw.IOC.REQBUFS)
+VIDIOC_QUERYBUF = _request(raw.IOC.QUERYBUF)
+VIDIOC_QBUF = _request(raw.IOC.QBUF)
+VIDIOC_DQBUF = _request(raw.IOC.DQBUF)
+VIDIOC_STREAMON = _request(raw.IOC.STREAMON)
+VIDIOC_STREAMOFF = _request(raw.IOC.STREAMOFF)
+VIDIOC_G_PARM = _request(raw.IOC.G_PARM)
+VIDIOC_S_PARM = _request(raw.IOC.S_PARM)
+VIDIOC_G_CTRL = _request(raw.IOC.G_CTRL)
+VIDIOC_S_CTRL = _request(raw.IOC.S_CTRL)
+VIDIOC_QUERYCTRL = _request(raw.IOC.QUERYCTRL)
+VIDIOC_ENUM_FRAMESIZES = _request(raw.IOC.ENUM_FRAMESIZES)
 
 
 # -- the I/O object -----------------------------------------------------------
@@ -255,8 +158,8 @@ class LinuxIO:
 # -- typed ioctls -------------------------------------------------------------
 
 
-def _text(raw) -> str:
-    return bytes(raw).split(b"\0", 1)[0].decode("utf-8", "replace")
+def _text(field) -> str:
+    return bytes(field).split(b"\0", 1)[0].decode("utf-8", "replace")
 
 
 class V4L2Device:
@@ -315,9 +218,9 @@ class V4L2Device:
                     break
                 raise
             if fs.type == FRMSIZE_TYPE_DISCRETE:
-                sizes.append((fs.size.discrete.width, fs.size.discrete.height))
+                sizes.append((fs.discrete.width, fs.discrete.height))
             else:
-                sizes.append((fs.size.stepwise.max_width, fs.size.stepwise.max_height))
+                sizes.append((fs.stepwise.max_width, fs.stepwise.max_height))
                 break
         return sizes
 

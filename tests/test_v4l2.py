@@ -175,9 +175,9 @@ class FakeV4L2IO:
 
     def _querycap(self, arg):
         cap = v.Capability.from_buffer(arg)
-        cap.driver[:8] = b"uvcvideo"
-        cap.card[:11] = b"Fake webcam"
-        cap.bus_info[:13] = b"usb-0000:00:1"
+        cap.driver = b"uvcvideo"
+        cap.card = b"Fake webcam"
+        cap.bus_info = b"usb-0000:00:1"
         cap.device_caps = v.CAP_VIDEO_CAPTURE | v.CAP_STREAMING
         cap.capabilities = cap.device_caps | v.CAP_DEVICE_CAPS
 
@@ -186,14 +186,14 @@ class FakeV4L2IO:
         if desc.type != v.BUF_TYPE_VIDEO_CAPTURE or desc.index >= len(self.formats):
             raise self._einval()
         desc.pixelformat = v.fourcc(self.formats[desc.index])
-        desc.description[:4] = self.formats[desc.index].encode()
+        desc.description = self.formats[desc.index].encode()
 
     def _enum_framesizes(self, arg):
         fs = v.FrmSizeEnum.from_buffer(arg)
         if v.fourcc_str(fs.pixel_format) not in self.formats or fs.index >= len(self.sizes):
             raise self._einval()
         fs.type = v.FRMSIZE_TYPE_DISCRETE
-        fs.size.discrete.width, fs.size.discrete.height = self.sizes[fs.index]
+        fs.discrete.width, fs.discrete.height = self.sizes[fs.index]
 
     @property
     def bytesperline(self) -> int:
@@ -338,7 +338,7 @@ class FakeV4L2IO:
         buf.index, buf.bytesused, buf.sequence = index, used, sequence
         buf.flags = v.BUF_FLAG_ERROR if sequence in self.error_frames else 0
         t = sequence * self.period_s
-        buf.timestamp.tv_sec, buf.timestamp.tv_usec = int(t), round((t % 1) * 1e6)
+        buf.timestamp.secs, buf.timestamp.usecs = int(t), round((t % 1) * 1e6)
         buf.field, buf.length = 1, self.buffer_size
         self.dequeued += 1
         self.changed.notify_all()
@@ -375,7 +375,7 @@ def test_ioctl_numbers_and_layouts_match_kernel():
             v.Buffer.m.offset, v.Buffer.length.offset) == (24, 56, 60, 64, 72)
     assert v.Format.fmt.offset == 8 and v.FmtDesc.pixelformat.offset == 44
     assert v.QueryCtrl.minimum.offset == 40 and v.QueryCtrl.flags.offset == 56
-    assert v.CaptureParm.timeperframe.offset == 8 and v.FrmSizeEnum.size.offset == 12
+    assert v.CaptureParm.timeperframe.offset == 8 and v.FrmSizeEnum.m1.offset == 12
     assert (v.fourcc("YUYV"), v.fourcc("MJPG"), v.fourcc("RGB3")) == (
         0x56595559, 0x47504A4D, 0x33424752)
     assert (v.CID_EXPOSURE_AUTO, v.CID_EXPOSURE_ABSOLUTE, v.CID_AUTOGAIN,
