@@ -101,6 +101,11 @@ def column_noise(flat: np.ndarray) -> float:
     ----------
     flat : numpy.ndarray
         ``(h, w)`` uint8 or uint16 image (channels side by side).
+
+    Returns
+    -------
+    float
+        The noise sigma, in image units.
     """
     n = (flat.shape[0] - 1) // 16 * 16
     diff = cv2.absdiff(flat[1 : n + 1 : 16, ::4], flat[0:n:16, ::4])
