@@ -508,3 +508,24 @@ def test_bands_further_apart_than_the_window_keep_their_interval():
     assert len(valid) >= 4  # the interior ones (and more)
     np.testing.assert_allclose(valid[:, F_INTERVAL], B, rtol=0.01)
     np.testing.assert_allclose(valid[:, F_LENGTH], L, rtol=0.02)
+
+
+def test_band_beside_a_depth_edge_takes_the_interval_of_its_own_side():
+    """Bands 40 px apart on an object, 20 px apart on the wall behind it.
+
+    The two bands at the edge have spacings that disagree (40 and 30, 30 and 20): each
+    takes its interval from the two neighbours on its own side, where the spacings
+    agree (once: both were irregular, as are many of a fan blade's bands).
+    """
+    obj = centres_for(40.0, 4)
+    wall = obj[-1] + 30.0 + 20.0 * np.arange(4)
+    L = {40.0: 14.0, 20.0: 6.0}
+    v = np.full(int(wall[-1] + 60), BG)
+    for cs, B in ((obj, 40.0), (wall, 20.0)):
+        v += band_row(v.size, cs, L[B], 4.0, 1.0) - BG
+    b = detect_row(v, 30.0)
+    assert len(b) == 8
+    np.testing.assert_array_equal(b[1:7, F_VALID], 1.0)
+    np.testing.assert_allclose(b[1:4, F_INTERVAL], 40.0, rtol=0.01)
+    np.testing.assert_allclose(b[4:7, F_INTERVAL], 20.0, rtol=0.01)
+    np.testing.assert_allclose(b[1:4, F_LENGTH], 14.0, rtol=0.02)

@@ -636,19 +636,51 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             continue
         if not valid:
             continue
+        hp = out[kp, F_HEIGHT]
+        hn = out[kn, F_HEIGHT]
         if abs(d1 - d2) > itol * interval:
-            out[k, F_VALID] = BAND_IRREGULAR
-            continue
+            # a depth edge beside the band (a blade before the wall, a ball's limb): when
+            # the spacings on exactly one side agree, the band lies on that side's surface
+            left = _side_interval(out, ns, k, kp, kp - 1, itol)
+            right = _side_interval(out, ns, k, kn, kn + 1, itol)
+            if np.isfinite(left) != np.isfinite(right):
+                interval = left if np.isfinite(left) else right
+                out[k, F_INTERVAL] = interval
+                hp = hn = out[kp, F_HEIGHT] if np.isfinite(left) else out[kn, F_HEIGHT]
+            elif abs(d1 - d2) > itol * interval:
+                out[k, F_VALID] = BAND_IRREGULAR
+                continue
         support = out[k, F_LENGTH] + ramp
         if support > interval - min_gap:
             out[k, F_VALID] = BAND_OVERLAP
             continue
-        hp = out[kp, F_HEIGHT]
-        hn = out[kn, F_HEIGHT]
         h0 = out[k, F_HEIGHT]
         if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
             out[k, F_VALID] = BAND_IRREGULAR
     return ns
+
+
+@nb.njit(cache=True)
+def _side_interval(out, ns, k, k1, k2, itol):
+    """Band ``k``'s interval from two neighbours on one side (``k1`` next, ``k2`` beyond).
+
+    The spacing is extrapolated linearly to band ``k``; NaN unless both spacings agree
+    within half of ``itol`` of the interval.
+    """
+    if k2 < 0 or k2 >= ns:
+        return np.nan
+    c0 = out[k, F_CENTRE]
+    c1 = out[k1, F_CENTRE]
+    c2 = out[k2, F_CENTRE]
+    d1 = abs(c1 - c0)
+    d2 = abs(c2 - c1)
+    if not (d1 > 2.0 and d2 > 2.0):  # also false for a NaN centre
+        return np.nan
+    interval = 1.5 * d1 - 0.5 * d2
+    # stricter than both sides' check: the extrapolation doubles a spacing's error
+    if abs(d1 - d2) > 0.5 * itol * interval:
+        return np.nan
+    return interval
 
 
 @nb.njit(cache=True)
