@@ -476,6 +476,15 @@ def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast,
     out[k, F_VALID] = code
 
 
+@nb.njit(cache=True, inline="always")
+def _gap(seg_a, seg_b, ns, n, g):
+    """First and last sample of gap ``g`` (left of segment ``g``; the outer two reach
+    24 samples past the outermost segments)."""
+    g0 = seg_b[g - 1] + 1 if g > 0 else max(0, seg_a[0] - 24)
+    g1 = seg_a[g] - 1 if g < ns else min(n - 1, seg_b[ns - 1] + 24)
+    return g0, g1
+
+
 @nb.njit(cache=True)
 def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
@@ -523,10 +532,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             out[k, F_VALID] = BAND_CUT
             continue  # needs a gap on both sides
         # background: mean of the middle half of each neighbouring gap
-        gl0 = seg_b[k - 1] + 1 if k > 0 else max(0, a - 24)
-        gl1 = a - 1
-        gr0 = b + 1
-        gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
+        gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
+        gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
         if gl1 < gl0 or gr1 < gr0:
             out[k, F_VALID] = BAND_OVERLAP
             continue
@@ -559,8 +566,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         for g in range(ns + 1):
             if not ((g > 0 and edges[g - 1, 0] > 0.0) or (g < ns and edges[g, 0] > 0.0)):
                 continue
-            g0 = seg_b[g - 1] + 1 if g > 0 else max(0, seg_a[0] - 24)
-            g1 = seg_a[g] - 1 if g < ns else min(n - 1, seg_b[ns - 1] + 24)
+            g0, g1 = _gap(seg_a, seg_b, ns, n, g)
             if g1 >= g0:
                 tails[g] = _tails(g0, g1, edges, g - 1, g)
         for k in range(ns):
@@ -572,10 +578,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
                 continue
             a = seg_a[k]
             b = seg_b[k]
-            gl0 = seg_b[k - 1] + 1 if k > 0 else max(0, a - 24)
-            gl1 = a - 1
-            gr0 = b + 1
-            gr1 = seg_a[k + 1] - 1 if k < ns - 1 else min(n - 1, b + 24)
+            gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
+            gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
             _measure_band(x, thr, k, a, b, gap_lv[k] - tl, gap_lv[k + 1] - tr, gap_dp[k],
                           gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), tl, tr,
                           min_contrast, sym_tol, out)  # fmt: skip

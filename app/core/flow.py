@@ -87,11 +87,13 @@ class FlowParams:
     static_factor: float = 0.9
     static_margin_px: float = 1.0
     # chosen on the tuning rigs with their measured blur (fan 1 ms, balls 5 and 8 ms:
-    # coverage 5-25 % -> 14-34 %, the fan's median 5.9 -> 12.7 mm, the balls' within 1 mm)
-    calibrated_static_factor: float = 0.6
-    calibrated_static_margin_px: float = 0.5
-    measure_factor: float = 0.5
-    measure_margin_px: float = 0.5
+    # coverage 5-25 % -> 14-34 %, the fan's median 5.9 -> 12.7 mm, the balls' within 1 mm;
+    # then 0.6 + 0.5 px -> 0.45 + 0.3 px with the measure floor below 0.5 + 0.5 px -> 0.3 +
+    # 0.3 px: the fan 41 -> 50 % at 10.2 -> 13.9 mm, the balls +1 to +6 points within 1 mm)
+    calibrated_static_factor: float = 0.45
+    calibrated_static_margin_px: float = 0.3
+    measure_factor: float = 0.3
+    measure_margin_px: float = 0.3
     sweep_smoothing_px: float = 8.0
     sweep_outlier: float = 0.4
     measured_share: float = 0.6
