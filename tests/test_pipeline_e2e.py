@@ -287,7 +287,9 @@ def test_tilted_board_moving_diagonally_unbiased_on_an_unseen_rig():
 def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     """Fan at the paper's 1 ms on a rig with a projector in front of the camera plane.
 
-    Measured here: median 4.6 mm, signed -2.4 mm, coverage 0.237.  Before the tails of
+    Measured here: median 4.5 mm, signed -3.9 mm, coverage 0.312 (the second frame uses the
+    blur measured on the wall's still lines, and its shorter static limit); before that
+    limit: 4.6 mm, -2.4 mm, 0.237.  Before the tails of
     narrow gaps were subtracted and max_depth_std went to 5 %: 3.0 mm, -0.04 mm, 0.152;
     before the print fill (:func:`lightflow.app.core.bands.fill_print`): 7.2 mm, -7.2 mm,
     0.123.  Before the blur fit
@@ -301,7 +303,7 @@ def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     s = _signed_scores(rig, "fan", 0.001)
     assert s["median_mm"] <= 7.0
     assert abs(s["signed_mm"]) <= 5.0
-    assert s["coverage"] >= 0.18
+    assert s["coverage"] >= 0.27
     assert s["off_fraction"] <= 0.02
 
 
@@ -310,7 +312,7 @@ def test_fan_at_1ms_with_a_measured_blur_on_an_unseen_rig():
     blur`` measures it: within 1-6 %), so that sweeps shorter than the line count.
 
     Measured here: median 3.8 mm, signed -2.7 mm, coverage 0.405 (the true blur: 2.5 mm,
-    +1.0 mm, 0.427; 5 % below it: 5.3 mm, +5.2 mm, 0.442); without the blur 0.235 above.
+    +1.0 mm, 0.427; 5 % below it: 5.3 mm, +5.2 mm, 0.442); 0.312 without it (above).
     """
     rig = _generated_rig(((-0.25, 0.0, 0.35), 35, 1200, 36), ((0.42, 0.02, -0.20), 16, 1500, 16),
                          crop=(640, 640, 960, 280))  # fmt: skip

@@ -58,9 +58,10 @@ class FlowParams:
         ``static_margin_px``.
     static_margin_px : float
     calibrated_static_factor, calibrated_static_margin_px : float
-        The same with a blur measured by ``lightflow rig blur``: a sweep shorter
-        than the line only shows in the ramps, against the blur, so a known blur
-        lets shorter sweeps count.
+        The same with a measured blur (by ``lightflow rig blur``, or on lines that
+        stand still between the first frames, a wall): a sweep shorter than the
+        line only shows in the ramps, against the blur, so a known blur lets
+        shorter sweeps count.
     measure_factor, measure_margin_px : float
         Sweeps of single cells below ``measure_factor`` line widths plus
         ``measure_margin_px`` are not measured at all (a static line).
@@ -507,6 +508,9 @@ class FlowModel:
         interval_ratio = np.empty((gh, gw), np.float32)
         banded = np.empty((gh, gw), np.float32)
         why = np.empty((gh, gw), np.uint8)
+        # a blur measured on still lines (the rig's, or a wall's between the first frames)
+        # lets sweeps shorter than the line count; a blur fitted on moving bands does not
+        measured = self.blur_source in ("rig", "still lines")
         # bands of grid rows on a thread per core (the kernels release the GIL)
         run_rows(
             _sweeps, gh, grids, self.kinds, self.steps, self.widths, self.line_px, self.blur,
@@ -514,8 +518,8 @@ class FlowModel:
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px,
-            params.calibrated_static_factor if self.calibrated else params.static_factor,
-            params.calibrated_static_margin_px if self.calibrated else params.static_margin_px,
+            params.calibrated_static_factor if measured else params.static_factor,
+            params.calibrated_static_margin_px if measured else params.static_margin_px,
             self._fitted, self.blur_rel_error, still, sweeps, moving_at,
             pitch,
             interval_ratio, banded, sens, why,
