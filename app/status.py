@@ -18,6 +18,7 @@ coverage
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -103,6 +104,28 @@ def format_summary(
         lines.append(f"{len(bad)} bad frame(s) skipped:")
         lines.extend(f"  {line}" for line in bad)
     return lines
+
+
+#: where the depth pipeline's lens blur came from (``FlowModel.blur_source``), for the summary
+BLUR_SOURCES = {
+    "rig": "measured, from the rig file",
+    "still lines": "measured on lines that stood still between the first frames (a wall)",
+    "moving bands": "fitted on the moving bands: `lightflow rig blur` (a board held still at "
+                    "three depths) measures it, and fans and balls then get 2-4x more depth",
+    "": "not known (no frame had enough bands)",
+}
+
+
+def describe_blur(pipeline) -> str:
+    """One summary line: the lens blur the pipeline used and where it came from.
+
+    Short sweeps (fans at 1 ms, balls at 5 ms) count only against a measured
+    blur, so a run without one says how to measure it.
+    """
+    fm = pipeline.flow_model
+    sigmas = [f"{s:.2f}" for s in fm.blur_px if math.isfinite(s)]
+    size = f" (sigma {' and '.join(sigmas)} camera px)" if sigmas else ""
+    return f"lens blur{size}: {BLUR_SOURCES.get(fm.blur_source, fm.blur_source)}"
 
 
 #: ``RunStats.extra`` key prefix of the grid pixels without depth, summed over a run

@@ -67,6 +67,9 @@ def test_replay_exports_depth_and_rrd(recording, tmp_path, capsys):
             frames.update(rb.column("frame").to_pylist())
     assert frames == set(range(N_FRAMES))
     assert f"processed {N_FRAMES} of {N_FRAMES} frames" in err
+    # no blur in the rig and no wall: fitted, and the summary says how to measure it
+    assert "lens blur (sigma " in err and "fitted on the moving bands" in err
+    assert "`lightflow rig blur`" in err
     assert f"depth maps: {N_FRAMES} frames in {depth_dir}/" in out
     assert f"open with `rerun {rrd}`" in out
 
@@ -191,3 +194,13 @@ def test_replay_with_a_bad_frame_exits_2_as_help_says(recording, tmp_path, capsy
     assert "1 of 3 frames could not be replayed" in err
     assert sorted(p.name for p in (tmp_path / "d").glob("*.npy")
                   if not p.stem.endswith("_std")) == ["000000.npy", "000002.npy"]
+
+
+def test_summary_says_a_rig_blur_was_used():
+    from lightflow.app.core.pipeline import DepthPipeline
+    from lightflow.app.status import describe_blur
+
+    rig = load_rig(RIG_FILE).scaled(0.25)
+    line = describe_blur(DepthPipeline(rig.with_blur([(0.36, 0.36), (0.36, 0.36)])))
+    assert line.startswith("lens blur") and "measured, from the rig file" in line
+    assert "rig blur`" not in line

@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.recording import timestamp_problems
     from lightflow.app.replay_camera import RecordedCamera
     from lightflow.app.runner import Runner
-    from lightflow.app.status import StatusLine
+    from lightflow.app.status import StatusLine, describe_blur
 
     rig = resolve_rig(args.rig) if args.rig else None
     if rig is not None:
@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         first = camera.bad_frames[0] if camera.bad_frames else "no frame was delivered"
         raise FrameError(f"{args.recording}: none of the {n} frames could be replayed ({first})")
     status.finish(stats, camera.bad_frames)
+    print(describe_blur(pipeline), file=sys.stderr)
     describe_outputs(sinks)
     if runner.interrupted:
         print("stopped early (Ctrl-C): outputs hold the frames processed so far", file=sys.stderr)
