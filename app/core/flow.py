@@ -465,9 +465,16 @@ class FlowModel:
         """Whether the blur model has been fitted from measured bands yet."""
         return self._fitted
 
+    @property
+    def blur_measured(self) -> bool:
+        """Whether the blur was measured on still lines (the rig's, or a wall's between the
+        first frames), not fitted on moving bands: then it is never refitted, and sweeps
+        shorter than the line count."""
+        return self.blur_source in ("rig", "still lines")
+
     def refits_at(self, frame: int, params) -> bool:
         """Whether :meth:`combine` may refit the blur model on its ``frame``-th call."""
-        if self.blur_source in ("rig", "still lines"):
+        if self.blur_measured:
             return False
         return (not self._fitted or frame in BLUR_EARLY_REFITS
                 or frame % params.blur_refit_frames == 0)  # fmt: skip
@@ -508,9 +515,7 @@ class FlowModel:
         interval_ratio = np.empty((gh, gw), np.float32)
         banded = np.empty((gh, gw), np.float32)
         why = np.empty((gh, gw), np.uint8)
-        # a blur measured on still lines (the rig's, or a wall's between the first frames)
-        # lets sweeps shorter than the line count; a blur fitted on moving bands does not
-        measured = self.blur_source in ("rig", "still lines")
+        measured = self.blur_measured
         # bands of grid rows on a thread per core (the kernels release the GIL)
         run_rows(
             _sweeps, gh, grids, self.kinds, self.steps, self.widths, self.line_px, self.blur,
