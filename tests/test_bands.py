@@ -16,6 +16,7 @@ from lightflow.app.core.bands import (
     detect_bands,
     estimate_leak,
     fill_print,
+    histogram_median,
 )
 from lightflow.app.core.profile_model import fit_blur, pixel_value, tables
 
@@ -529,3 +530,24 @@ def test_band_beside_a_depth_edge_takes_the_interval_of_its_own_side():
     np.testing.assert_allclose(b[1:4, F_INTERVAL], 40.0, rtol=0.01)
     np.testing.assert_allclose(b[4:7, F_INTERVAL], 20.0, rtol=0.01)
     np.testing.assert_allclose(b[1:4, F_LENGTH], 14.0, rtol=0.02)
+
+
+def test_fill_print_on_some_rows_fills_them_as_the_whole_image_does():
+    """Only the detector's rows are closed (the erosion runs on them alone): the same values."""
+    rng = np.random.default_rng(5)
+    printed = _upright_band_image(rng, noise=2.0)
+    printed[10:14, 50:53] //= 6
+    printed[0:3, 20:30] //= 5  # print at the top border, where the erosion is clipped
+    whole = fill_print(printed, 13, min_dip=6.0)
+    rows = np.array([0, 1, 5, 11, 12, 30, printed.shape[0] - 1])
+    part = fill_print(printed, 13, min_dip=6.0, rows=rows)
+    assert np.array_equal(part[rows], whole[rows])
+    assert not np.array_equal(whole[rows], printed[rows])  # some print was filled there
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("n", [1, 2, 7, 1000, 1001])
+def test_median_from_a_histogram_equals_numpys(dtype, n):
+    top = 200 if dtype == np.uint8 else 4000
+    values = np.random.default_rng(n).integers(0, top, n).astype(dtype)
+    assert histogram_median(values) == float(np.median(values))

@@ -109,7 +109,32 @@ def column_noise(flat: np.ndarray) -> float:
     """
     n = (flat.shape[0] - 1) // 16 * 16
     diff = cv2.absdiff(flat[1 : n + 1 : 16, ::4], flat[0:n:16, ::4])
-    return float(np.median(diff)) * 1.4826 / np.sqrt(2.0)
+    return histogram_median(diff) * 1.4826 / np.sqrt(2.0)
+
+
+def histogram_median(values: np.ndarray) -> float:
+    """``np.median`` of an array, from a histogram when it holds small unsigned integers.
+
+    The same value as ``np.median`` (the mean of the two middle values for an even
+    count), at a tenth of the cost of its partial sort on a camera image's values.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Any array; uint8 and uint16 take the histogram path.
+
+    Returns
+    -------
+    float
+    """
+    if values.dtype not in (np.uint8, np.uint16) or values.size == 0:
+        return float(np.median(values))
+    below = np.cumsum(np.bincount(values.ravel()))
+    n = values.size
+    # the k-th smallest value (0-based) is the first with more than k values at or below it
+    lo = int(np.searchsorted(below, (n - 1) // 2, side="right"))
+    hi = int(np.searchsorted(below, n // 2, side="right"))
+    return 0.5 * (lo + hi)
 
 
 def fill_print(
@@ -151,10 +176,18 @@ def fill_print(
     h = image.shape[0]
     # every channel of every column alike: one single-channel image, the fastest path
     flat = np.ascontiguousarray(image).reshape(h, -1)
-    closed = cv2.morphologyEx(flat, cv2.MORPH_CLOSE, np.ones((length, 1), np.uint8))
+    kernel = np.ones((length, 1), np.uint8)
     sigma = column_noise(flat)
     out = flat.copy()
-    part, closed_part = (flat, closed) if rows is None else (flat[rows], closed[rows])
+    if rows is None:
+        part = flat
+        closed_part = cv2.morphologyEx(flat, cv2.MORPH_CLOSE, kernel)
+    else:
+        part = flat[rows]
+        # the closing's erosion only where it is read: the same values on these rows
+        closed_part = np.empty_like(part)
+        run_rows(_erode_rows, len(rows), cv2.dilate(flat, kernel), rows, length // 2,
+                 closed_part)  # fmt: skip
     # closed >= flat everywhere, so the unsigned difference cannot wrap
     dip = cv2.subtract(closed_part, part)
     level = cv2.max(cv2.addWeighted(closed_part, 0.125, closed_part, 0.0, 0.0),
@@ -167,6 +200,22 @@ def fill_print(
     else:
         out[rows] = cv2.copyTo(closed_part, deep, part.copy())
     return out.reshape(image.shape)
+
+
+@nb.njit(cache=True, nogil=True)
+def _erode_rows(dilated, rows, r, out, i0, i1):
+    """``out[i]``: the minimum of ``dilated`` over rows ``rows[i] - r .. rows[i] + r``
+    (clipped to the image, as OpenCV's erosion ignores what lies outside); ``i0 .. i1`` only.
+    """
+    h = dilated.shape[0]
+    for i in range(i0, i1):
+        y = rows[i]
+        o = out[i]
+        o[:] = dilated[max(0, y - r)]
+        for yy in range(max(0, y - r) + 1, min(h - 1, y + r) + 1):
+            src = dilated[yy]
+            for j in range(o.shape[0]):
+                o[j] = min(o[j], src[j])
 
 
 @nb.njit(cache=True, inline="always")
