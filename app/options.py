@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 
 from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.rig import GAMMA_RANGE
 
 
 def write_images(images: dict, out: Path) -> list[Path]:
@@ -75,6 +76,12 @@ def add_pipeline_options(p: argparse.ArgumentParser) -> None:
         "of the line intervals, which needs no motion ('auto', the default, is on for "
         "single-projector rigs and off for two projectors, whose depth is in the motion)",
     )  # fmt: skip
+    p.add_argument(
+        "--camera-gamma", type=float, metavar="G",
+        help="the camera's response, DN = full * (light / full) ** (1 / G): 1 for a linear "
+        "camera, about 2.2 for a webcam or an sRGB image; every frame is linearised with it "
+        "before the bands are measured (default: the rig's camera.gamma, or 1)",
+    )  # fmt: skip
 
 
 def pipeline_config(args: argparse.Namespace):
@@ -89,7 +96,12 @@ def pipeline_config(args: argparse.Namespace):
             raise ConfigError(f"--smoothing: expected a non-negative number of pixels, "
                               f"got {smoothing}")  # fmt: skip
         flow["smoothing_px"] = smoothing
-    return PipelineConfig(stride=args.stride, flow=FlowParams(**flow))
+    gamma = getattr(args, "camera_gamma", None)
+    lo, hi = GAMMA_RANGE
+    if gamma is not None and not lo <= gamma <= hi:
+        raise ConfigError(f"--camera-gamma: expected {lo:g} to {hi:g} (1: a linear camera), "
+                          f"got {gamma:g}")  # fmt: skip
+    return PipelineConfig(stride=args.stride, flow=FlowParams(**flow), camera_gamma=gamma)
 
 
 def make_pipeline(rig, args: argparse.Namespace):

@@ -126,7 +126,25 @@ BAD = [
      "projectors[0].dist: coefficients move image points by more than a factor 4"),
     ("width as a huge integer", TWO, lambda d: d["camera"].update(width=10**400),
      "camera.width: expected an integer <= 16384, got"),
+    ("camera gamma 9", TWO, lambda d: d["camera"].update(gamma=9),
+     "camera.gamma: expected 0.3 to 4 (1: a linear camera), got 9"),
+    ("camera gamma a string", TWO, lambda d: d["camera"].update(gamma="srgb"),
+     'camera.gamma: expected a number, got "srgb"'),
 ]  # fmt: skip
+
+
+def test_camera_gamma_round_trip_and_keeps_the_geometry(tmp_path):
+    """``camera.gamma`` is optional (1, linear, is not written); it changes no line position."""
+    rig = load_rig(RIGS / "two-projector.json")
+    assert rig.camera.gamma == 1.0 and "gamma" not in rig.to_dict()["camera"]
+    webcam = rig.with_camera_gamma(2.2)
+    path = tmp_path / "webcam.json"
+    save_rig(webcam, path)
+    again = load_rig(path)
+    assert again.camera.gamma == 2.2 and json.loads(path.read_text())["camera"]["gamma"] == 2.2
+    assert again.digest() != rig.digest()
+    assert again.geometry_digest() == rig.geometry_digest()  # the same depth table
+    assert again.scaled(0.5).camera.gamma == 2.2
 
 
 @pytest.mark.parametrize("base, edit, where", [c[1:] for c in BAD], ids=[c[0] for c in BAD])

@@ -13,6 +13,7 @@ import numpy as np
 
 from . import bands as bd
 from . import causes as cz
+from . import response as rsp
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
 from .flow import FlowModel, FlowParams, smooth_log_ratio
@@ -54,6 +55,10 @@ class PipelineConfig:
         Two projectors: where the sparse pattern's measured line interval
         disagrees with the one its dense partner and the rig predict (curved
         surfaces), use the prediction (:mod:`lightflow.app.core.intervals`).
+    camera_gamma : float, optional
+        The camera's response, ``DN = full * (light / full) ** (1 / gamma)``;
+        default: the rig's (``camera.gamma``, 1 for a linear camera).  Unless it
+        is 1, every frame is linearised first (:mod:`lightflow.app.core.response`).
     """
 
     stride: int = 4
@@ -66,10 +71,15 @@ class PipelineConfig:
     # balls from 14-34 % to 28-48 % coverage, medians within 3 mm (0.08 added little more)
     max_depth_std: float = 0.05
     predict_intervals: bool = True
+    camera_gamma: float | None = None
 
     def __post_init__(self):
         if self.stride not in (1, 2, 4):
             raise ConfigError(f"stride: expected 1, 2 or 4, got {self.stride}")
+        lo, hi = rsp.GAMMA_RANGE
+        if self.camera_gamma is not None and not lo <= self.camera_gamma <= hi:
+            raise ConfigError(f"camera_gamma: expected {lo:g} to {hi:g} (1: a linear camera), "
+                              f"got {self.camera_gamma}")  # fmt: skip
         if not self.max_depth_std > 0:
             raise ConfigError(f"max_depth_std: expected a positive share of the depth, "
                               f"got {self.max_depth_std}")  # fmt: skip
@@ -158,6 +168,10 @@ class DepthPipeline:
         )
         self._full_size = (cam.width, cam.height)
         self._full_scale = 255.0
+        #: the camera's response (1: linear), and the table that undoes it for the
+        #: last frame's type
+        self.camera_gamma = cfg.camera_gamma or rig.camera.gamma
+        self._linear_table: tuple | None = None
 
     # ------------------------------------------------------------------ stages
 
@@ -247,7 +261,7 @@ class DepthPipeline:
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
-                           "_full_size"})  # fmt: skip
+                           "_full_size", "_linear_table"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:
@@ -386,6 +400,7 @@ class DepthPipeline:
         # a 12-bit camera's full scale is 4095, not the uint16 maximum
         self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
                                    else 255.0)  # fmt: skip
+        image = self._linearise(image)
         weights = self._weights(image)
         relearn = self._windows is None or self._frames % cfg.crosstalk_every == 0
         rows = self._read_rows
@@ -411,6 +426,18 @@ class DepthPipeline:
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
         timings["bands"] = (time.perf_counter() - t1) * 1e3
         return bands, counts, grids
+
+    def _linearise(self, image: np.ndarray) -> np.ndarray:
+        """``image`` in linear values (and the full scale set to theirs), unless the camera is."""
+        gamma = self.camera_gamma
+        if gamma == 1.0:
+            return image
+        key = (image.dtype.str, self._full_scale, gamma)
+        if self._linear_table is None or self._linear_table[0] != key:
+            table = rsp.linearising_table(gamma, image.dtype, self._full_scale)
+            self._linear_table = (key, table)
+        self._full_scale = rsp.LINEAR_FULL
+        return rsp.linearise(image, self._linear_table[1])
 
     def _causes(self, bands, counts, grids, why, raw, log_ratio, depth_grid) -> np.ndarray:
         """One :mod:`.causes` code per grid pixel: ``DEPTH`` or the first reason for none."""

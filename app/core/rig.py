@@ -20,6 +20,9 @@ import numpy as np
 
 from .errors import ConfigError
 
+#: the camera response curves (gamma) a rig may give
+GAMMA_RANGE = (0.3, 4.0)
+
 RIG_FORMAT = "lightflow-rig/1"
 CHANNELS = ("red", "green", "blue")
 #: index of each channel in an RGB image
@@ -73,20 +76,29 @@ class Pattern:
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Pinhole camera with OpenCV distortion."""
+    """Pinhole camera with OpenCV distortion.
+
+    ``gamma`` is the camera's response, ``DN = full * (light / full) ** (1 / gamma)``:
+    1 for a linear camera (the file's default); the pipeline linearises every
+    frame with it.
+    """
 
     width: int
     height: int
     K: np.ndarray = field(repr=False)
     dist: np.ndarray = field(repr=False)
+    gamma: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d = {
             "width": self.width,
             "height": self.height,
             "K": self.K.tolist(),
             "dist": self.dist.tolist(),
         }
+        if self.gamma != 1.0:
+            d["gamma"] = self.gamma
+        return d
 
 
 @dataclass(frozen=True)
@@ -138,6 +150,10 @@ class Rig:
     def single_projector(self) -> bool:
         return len(self.projectors) == 1
 
+    def with_camera_gamma(self, gamma: float) -> Rig:
+        """The same rig with the camera's response ``gamma`` (1: linear)."""
+        return replace(self, camera=replace(self.camera, gamma=float(gamma)))
+
     def with_blur(self, blurs) -> Rig:
         """The same rig with a measured blur ``(a, b)`` per pattern (file order), or None."""
         blurs = list(blurs)
@@ -168,6 +184,7 @@ class Rig:
         not change where lines fall.
         """
         d = self.to_dict()
+        d["camera"].pop("gamma", None)  # the response does not move a line either
         for proj in d["projectors"]:
             for pat in proj["patterns"]:
                 pat.pop("blur", None)
@@ -184,7 +201,7 @@ class Rig:
         K[0, 2] += 0.5 * factor - 0.5
         K[1, 2] += 0.5 * factor - 0.5
         new_cam = CameraModel(
-            round(cam.width * factor), round(cam.height * factor), K, cam.dist.copy()
+            round(cam.width * factor), round(cam.height * factor), K, cam.dist.copy(), cam.gamma
         )
         return Rig(new_cam, self.projectors, self.source)
 
@@ -429,8 +446,14 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     rd.obj(data, "rig", {"format", "camera", "projectors"})
     if data["format"] != RIG_FORMAT:
         raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {short_json(data['format'])}")
-    cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"})
-    camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"))
+    cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"}, {"gamma"})
+    gamma = 1.0
+    if "gamma" in cam_d:
+        gamma = rd.number(cam_d["gamma"], "camera.gamma")
+        if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:
+            raise rd.fail("camera.gamma", f"expected {GAMMA_RANGE[0]:g} to {GAMMA_RANGE[1]:g} "
+                          f"(1: a linear camera), got {gamma:g}")  # fmt: skip
+    camera = CameraModel(*_parse_intrinsics(rd, cam_d, "camera"), gamma=gamma)
     projs = data["projectors"]
     if not isinstance(projs, list) or len(projs) not in (1, 2):
         raise rd.fail("projectors", "expected a list of one or two projectors")
