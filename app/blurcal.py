@@ -9,6 +9,10 @@ width is known from the rig, so their ramps give the blur.  Seen at several
 depths (magnifications), the camera's part (fixed in camera pixels) and the
 projector's defocus (fixed in projector pixels) separate
 (:func:`lightflow.app.core.profile_model.static_blur`).
+
+The same lines give the camera's response curve first (:func:`measure_response`):
+a static line's ramp gives its blur, the blur and its known width give its
+width at half height, and a camera that is not linear reads every line wider.
 """
 
 from __future__ import annotations
@@ -20,11 +24,111 @@ import numpy as np
 
 from lightflow.app.core.errors import CalibrationError
 from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
-from lightflow.app.core.profile_model import static_blur
-from lightflow.app.core.rig import Rig
+from lightflow.app.core.profile_model import static_blur, static_width_excess
+from lightflow.app.core.rig import GAMMA_RANGE, Rig
 
 #: magnifications must span this ratio for the projector's part to be told from the camera's
 MIN_MAGNIFICATION_SPAN = 1.15
+#: a measured gamma this close to 1 is a linear camera (linear renders of the tuning rigs
+#: measure 1.00-1.01), so a linear camera keeps exactly its values and its speed
+LINEAR_SNAP = 0.05
+#: static lines needed on both sides of the answer
+MIN_RESPONSE_LINES = 500
+
+
+@dataclass(frozen=True)
+class CameraResponse:
+    """The camera's response curve measured on static lines.
+
+    Attributes
+    ----------
+    gamma : float
+        ``DN = full * (light / full) ** (1 / gamma)``; exactly 1 when the
+        measurement was within :data:`LINEAR_SNAP` of it.
+    measured : float
+        The measurement itself, before that snap.
+    lines : int
+        Static line measurements (grid cells) at the answer.
+    excess_linear_px : float
+        How much wider the lines read at half height when taken as linear (camera px).
+    """
+
+    gamma: float
+    measured: float
+    lines: int
+    excess_linear_px: float
+
+
+def measure_response(rig: Rig, frames: Iterable, stride: int = 4) -> CameraResponse:
+    """The camera's gamma from frames of static surfaces.
+
+    Each candidate gamma linearises the frames; the answer is where the static
+    lines' excess width at half height (:func:`static_width_excess`) falls
+    through 0.  The excess falls as the candidate rises: too small a gamma leaves
+    the lines wide.  A grid of candidates (log-spaced over the rig file's range)
+    brackets the root, then bisection refines it.
+
+    Parameters
+    ----------
+    rig : Rig
+    frames : iterable of Frame
+        As for :func:`measure_blur`.
+    stride : int
+
+    Returns
+    -------
+    CameraResponse
+
+    Raises
+    ------
+    CalibrationError
+        Too few static lines, or no candidate makes them as wide as the model.
+    """
+    frames = list(frames)
+    if not frames:
+        raise CalibrationError("rig blur: no frames to measure")
+    pipeline = DepthPipeline(rig, PipelineConfig(stride=stride))
+
+    def excess(log_gamma: float):
+        pipeline.camera_gamma = float(np.exp(log_gamma))
+        cols = [[], [], []]
+        for frame in frames:
+            lines = pipeline.flow_model.line_samples(pipeline.band_grids(frame))
+            for p in range(2):
+                for c in range(3):
+                    cols[c].append(lines[p, c])
+        return static_width_excess(*(np.concatenate(c) for c in cols),
+                                   min_bands=MIN_RESPONSE_LINES)  # fmt: skip
+
+    at_linear = excess(0.0)
+    grid = np.linspace(np.log(GAMMA_RANGE[0]), np.log(GAMMA_RANGE[1]), 19)
+    prev = None
+    for g in grid:
+        e = excess(float(g))
+        if e is not None and prev is not None and prev[1] > 0.0 >= e[0]:
+            lo, hi = prev[0], float(g)
+            break
+        prev = (float(g), e[0]) if e is not None else None
+    else:
+        raise CalibrationError(
+            f"rig blur: the camera's response could not be measured on {len(frames)} frame(s): "
+            f"expected still surfaces lit by both patterns, in focus range"
+        )
+    lines = 0
+    for _ in range(10):  # to within 0.1 % in gamma
+        mid = 0.5 * (lo + hi)
+        e = excess(mid)
+        if e is None:
+            break
+        lines = e[1]
+        if e[0] > 0.0:
+            lo = mid
+        else:
+            hi = mid
+    measured = float(np.exp(0.5 * (lo + hi)))
+    gamma = 1.0 if abs(measured - 1.0) < LINEAR_SNAP else round(measured, 3)
+    return CameraResponse(gamma, measured, lines,
+                          at_linear[0] if at_linear is not None else float("nan"))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -99,3 +203,30 @@ def measure_blur(rig: Rig, frames: Iterable, stride: int = 4) -> list[PatternBlu
         lo, hi = (float(v) for v in np.percentile(seen, [5, 95]))
         out.append(PatternBlur(a, b, used, (lo, hi)))
     return out
+
+
+def calibrate_optics(rig: Rig, frames: Iterable, stride: int = 4):
+    """The camera's response, then each pattern's blur in linear values: what ``rig blur`` does.
+
+    Parameters
+    ----------
+    rig : Rig
+    frames : iterable of Frame
+        Frames of static surfaces (see :func:`measure_blur`).
+    stride : int
+
+    Returns
+    -------
+    (Rig, CameraResponse or None, list of PatternBlur)
+        The rig with the measured ``camera.gamma`` and blur; the response is None
+        (and the rig's gamma kept) when it could not be measured.
+    """
+    frames = list(frames)
+    try:
+        response = measure_response(rig, frames, stride)
+    except CalibrationError:
+        response = None
+    if response is not None:
+        rig = rig.with_camera_gamma(response.gamma)
+    blurs = measure_blur(rig, frames, stride)
+    return rig.with_blur((pb.camera_px2, pb.projector_px2) for pb in blurs), response, blurs

@@ -243,7 +243,7 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
     measured on ``out/<rig>-blur/`` (:data:`BLUR_SCENE`, :func:`measure_blur`),
     and its cases are scored with that rig file.
     """
-    from lightflow.app.blurcal import measure_blur
+    from lightflow.app.blurcal import calibrate_optics
     from lightflow.app.evaluation import evaluate_recording
     from lightflow.app.recording import read_recording, recording_frames
 
@@ -269,10 +269,11 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
                 steps = _rendered(out / f"{case.rig_name}-blur", case.rig, BLUR_SCENE,
                                   BLUR_EXPOSURE_S, case.sensor, BLUR_FRAMES, 1.0, 0, progress,
                                   log, label)  # fmt: skip
-                blurs = measure_blur(case.rig, recording_frames(read_recording(steps)))
-                calibrated[case.rig_name] = case.rig.with_blur(
-                    (pb.camera_px2, pb.projector_px2) for pb in blurs)
-                log(f"{label} blur of {case.rig_name}: " + ", ".join(
+                calibrated[case.rig_name], response, blurs = calibrate_optics(
+                    case.rig, recording_frames(read_recording(steps)))
+                gamma = ("not measured" if response is None
+                         else f"gamma {response.gamma:g} (measured {response.measured:.3f})")
+                log(f"{label} camera response of {case.rig_name}: {gamma}; blur: " + ", ".join(
                     f"sigma^2 = {pb.camera_px2:.2f} + {pb.projector_px2:.2f} m^2" for pb in blurs))
             rig = calibrated[case.rig_name]
         log(f"{label} scoring {case.name} ...")

@@ -80,7 +80,8 @@ def add_pipeline_options(p: argparse.ArgumentParser) -> None:
         "--camera-gamma", type=float, metavar="G",
         help="the camera's response, DN = full * (light / full) ** (1 / G): 1 for a linear "
         "camera, about 2.2 for a webcam or an sRGB image; every frame is linearised with it "
-        "before the bands are measured (default: the rig's camera.gamma, or 1)",
+        "before the bands are measured (default: the rig's camera.gamma, or 1; `lightflow rig "
+        "blur` measures it)",
     )  # fmt: skip
 
 

@@ -128,6 +128,23 @@ def describe_blur(pipeline) -> str:
     return f"lens blur{size}: {BLUR_SOURCES.get(fm.blur_source, fm.blur_source)}"
 
 
+def describe_response(pipeline) -> str:
+    """One summary line: the camera response the frames were linearised with, and whence.
+
+    A camera that is not linear reads every band wide and the depth long, so a
+    run whose rig does not say says how to measure it.
+    """
+    gamma = pipeline.camera_gamma
+    given = pipeline.config.camera_gamma is not None
+    source = "from --camera-gamma" if given else "from the rig file"
+    if gamma != 1.0:
+        return f"camera response: gamma {gamma:g} ({source}): frames linearised"
+    if given or pipeline.rig.camera.gamma is not None:
+        return f"camera response: linear ({source})"
+    return ("camera response: taken as linear (the rig file gives no camera.gamma): a webcam "
+            "or an sRGB image reads every depth long; `lightflow rig blur` measures it")
+
+
 #: ``RunStats.extra`` key prefix of the grid pixels without depth, summed over a run
 CAUSE_PREFIX = "no_depth:"
 

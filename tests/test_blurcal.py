@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.blurcal import measure_blur
+from lightflow.app.blurcal import measure_blur, measure_response
 from lightflow.app.cli import main
 from lightflow.app.core.flow import FlowModel, FlowParams
 from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import RecordingWriter, read_recording, recording_frames
-from lightflow.drivers.sim.synthetic import SyntheticCamera
+from lightflow.drivers.sim.synthetic import SensorModel, SyntheticCamera
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
 
@@ -37,6 +37,48 @@ def steps(tmp_path_factory) -> Path:
         for frame in cam.frames():
             assert writer.write(frame)
     return root
+
+
+@pytest.fixture(scope="module")
+def webcam_steps(tmp_path_factory) -> Path:
+    """The same board seen by a camera storing ``light ** (1 / 2.2)`` (a webcam)."""
+    rig = load_rig(RIG_FILE).scaled(0.5)
+    root = tmp_path_factory.mktemp("webcam") / "steps"
+    cam = SyntheticCamera(rig, "board-steps", frames=3, fps=1.0, seed=3,
+                          sensor=SensorModel(camera_gamma=2.2))  # fmt: skip
+    with cam, RecordingWriter(root, rig, cam.exposure_s) as writer:
+        for frame in cam.frames():
+            assert writer.write(frame)
+    return root
+
+
+def test_camera_response_from_still_lines(steps, webcam_steps):
+    """Measured: 2.24 for the webcam (its lines 0.42 px wider at half height when taken as
+    linear), 1.017 for the linear camera (0.013 px), written as exactly 1."""
+    rec = read_recording(webcam_steps)
+    webcam = measure_response(rec.rig, recording_frames(rec))
+    print(f"\nwebcam {webcam}")
+    assert webcam.gamma == pytest.approx(2.2, abs=0.1)
+    assert webcam.excess_linear_px > 0.3 and webcam.lines > 10_000
+    rec = read_recording(steps)
+    linear = measure_response(rec.rig, recording_frames(rec))
+    print(f"linear {linear}")
+    assert linear.gamma == 1.0 and abs(linear.measured - 1.0) < 0.03
+    assert abs(linear.excess_linear_px) < 0.05
+
+
+def test_rig_blur_writes_the_webcam_gamma_and_its_true_blur(webcam_steps, tmp_path, capsys):
+    out = tmp_path / "webcam.json"
+    assert main(["rig", "blur", str(webcam_steps), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "camera response: gamma 2.2" in text and "not linear" in text
+    rig = load_rig(out)
+    assert rig.camera.gamma == pytest.approx(2.2, abs=0.1)
+    # measured on linearised frames, the blur is the simulator's (as for a linear camera)
+    for p, (_, pat) in enumerate(rig.patterns):
+        a, b = pat.blur
+        for m in (1.0, 2.0):
+            assert math.sqrt(a + b * m * m) == pytest.approx(truth_sigma(m), rel=0.08), p
 
 
 def test_blur_from_still_lines_matches_the_simulated_optics(steps):

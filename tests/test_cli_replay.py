@@ -204,3 +204,17 @@ def test_summary_says_a_rig_blur_was_used():
     line = describe_blur(DepthPipeline(rig.with_blur([(0.36, 0.36), (0.36, 0.36)])))
     assert line.startswith("lens blur") and "measured, from the rig file" in line
     assert "rig blur`" not in line
+
+
+def test_the_summary_says_which_camera_response_was_used():
+    from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.core.rig import resolve_rig
+    from lightflow.app.status import describe_response
+
+    rig = resolve_rig("two-projector").scaled(0.25)
+    line = describe_response(DepthPipeline(rig))
+    assert "taken as linear" in line and "lightflow rig blur" in line
+    line = describe_response(DepthPipeline(rig.with_camera_gamma(1.0)))
+    assert line == "camera response: linear (from the rig file)"
+    line = describe_response(DepthPipeline(rig, PipelineConfig(camera_gamma=2.2)))
+    assert line == "camera response: gamma 2.2 (from --camera-gamma): frames linearised"

@@ -134,9 +134,9 @@ BAD = [
 
 
 def test_camera_gamma_round_trip_and_keeps_the_geometry(tmp_path):
-    """``camera.gamma`` is optional (1, linear, is not written); it changes no line position."""
+    """``camera.gamma`` is optional (taken as 1, linear); it changes no line position."""
     rig = load_rig(RIGS / "two-projector.json")
-    assert rig.camera.gamma == 1.0 and "gamma" not in rig.to_dict()["camera"]
+    assert rig.camera.gamma is None and "gamma" not in rig.to_dict()["camera"]
     webcam = rig.with_camera_gamma(2.2)
     path = tmp_path / "webcam.json"
     save_rig(webcam, path)

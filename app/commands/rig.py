@@ -42,8 +42,9 @@ examples:
 
 
 BLUR_DESCRIPTION = """\
-Measure how blurred each pattern's lines are in the camera, once per rig, and
-write it into the rig file (each pattern's "blur").  Fast objects (a fan at
+Measure the camera's response curve and how blurred each pattern's lines are
+in the camera, once per rig, and write both into the rig file (camera.gamma and
+each pattern's "blur").  Fast objects (a fan at
 1 ms, a ball at 5 ms) move their lines less than the lines' own width; their
 sweep then shows only in the edges of the band, and reading it needs the blur.
 Without this measurement the pipeline fits the blur on the moving bands of the
@@ -54,9 +55,13 @@ two or three distances across the working range: the camera's part of the
 blur is fixed in camera pixels, the projector's defocus in projector pixels,
 and the distances tell them apart.  Any exposure will do.
 
-Prints per pattern the two parts, the blur at a few magnifications and how
-many line measurements were used.  Exit status 2 with one line when a
-recording shows too few still lines."""
+The response comes first: a still line's ramp gives its blur, its known width
+and that blur give its width at half height, and a camera that is not linear
+(a webcam, gamma about 2.2) reads every line wider; the gamma that makes them
+agree is written as camera.gamma (1: linear), and every frame of every run is
+linearised with it.  Prints the gamma, then per pattern the two parts of the
+blur, the blur at a few magnifications and how many line measurements were
+used.  Exit status 2 with one line when a recording shows too few still lines."""
 
 BLUR_EPILOG = """\
 examples:
@@ -111,7 +116,8 @@ def register(subparsers) -> None:
     c.set_defaults(func=run)
     b = sub.add_parser(
         "blur",
-        help="measure the blur of each pattern's lines on recordings of still surfaces",
+        help="measure the camera's response and the blur of each pattern's lines on "
+        "recordings of still surfaces",
         description=BLUR_DESCRIPTION,
         epilog=BLUR_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -167,7 +173,7 @@ def report_lines(report: RigReport) -> list[str]:
 
 
 def run_blur(args: argparse.Namespace) -> int:
-    from lightflow.app.blurcal import MIN_MAGNIFICATION_SPAN, measure_blur
+    from lightflow.app.blurcal import MIN_MAGNIFICATION_SPAN, calibrate_optics
     from lightflow.app.core.rig import save_rig
     from lightflow.app.recording import read_recording, recording_frames
 
@@ -177,8 +183,17 @@ def run_blur(args: argparse.Namespace) -> int:
     for path, rec in zip(args.recordings, recs, strict=True):
         if rec.rig.geometry_digest() != rig.geometry_digest():
             raise ConfigError(f"{path}: its rig differs from {recs[0].rig.source}: give --rig")
-    frames = (frame for rec in recs for frame in recording_frames(rec))
-    blurs = measure_blur(rig, frames)
+    frames = [frame for rec in recs for frame in recording_frames(rec)]
+    out, response, blurs = calibrate_optics(rig, frames)
+    if response is None:
+        print(f"camera response: not measured (too few still lines); kept the rig's gamma "
+              f"{rig.camera.gamma:g}")  # fmt: skip
+    else:
+        kind = ("linear" if response.gamma == 1.0
+                else "not linear: every frame will be linearised with it")
+        print(f"camera response: gamma {response.gamma:g} ({kind}; measured "
+              f"{response.measured:.3f} on {response.lines} still line measurements, which "
+              f"read {response.excess_linear_px:+.2f} px wide at half height if taken as linear)")
     for i, ((proj, pat), pb) in enumerate(zip(rig.patterns, blurs, strict=True), 1):
         lo, hi = pb.magnification
         print(f"pattern {i} ({pat.channel}, projector {proj.name}): blur sigma^2 = "
@@ -189,9 +204,9 @@ def run_blur(args: argparse.Namespace) -> int:
             print(f"WARNING pattern {i}: all lines were seen at about one magnification "
                   f"({lo:.2f}-{hi:.2f}): record still surfaces at other distances too, "
                   f"or the blur away from this one is a guess")  # fmt: skip
-    out = rig.with_blur((pb.camera_px2, pb.projector_px2) for pb in blurs)
     save_rig(out, args.out)
-    print(f"wrote {args.out}: the rig with each pattern's measured blur")
+    print(f"wrote {args.out}: the rig with the camera's response and each pattern's "
+          f"measured blur")  # fmt: skip
     return 0
 
 

@@ -57,7 +57,7 @@ class PipelineConfig:
         surfaces), use the prediction (:mod:`lightflow.app.core.intervals`).
     camera_gamma : float, optional
         The camera's response, ``DN = full * (light / full) ** (1 / gamma)``;
-        default: the rig's (``camera.gamma``, 1 for a linear camera).  Unless it
+        default: the rig's (``camera.gamma``; 1, linear, when it gives none).  Unless it
         is 1, every frame is linearised first (:mod:`lightflow.app.core.response`).
     """
 
@@ -170,7 +170,7 @@ class DepthPipeline:
         self._full_scale = 255.0
         #: the camera's response (1: linear), and the table that undoes it for the
         #: last frame's type
-        self.camera_gamma = cfg.camera_gamma or rig.camera.gamma
+        self.camera_gamma = cfg.camera_gamma or rig.camera.gamma or 1.0
         self._linear_table: tuple | None = None
 
     # ------------------------------------------------------------------ stages

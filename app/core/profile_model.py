@@ -685,6 +685,47 @@ def blur_model(sigma2, k2, s2) -> tuple[float, float]:
     return a, float(b)
 
 
+def static_width_excess(m, r, line, min_bands: int = 200):
+    """How much wider static lines are at half height than their ramps say they should be.
+
+    A static line is a box of known width blurred: its ramp gives its blur sigma
+    (as in :func:`static_blur`), and the box and that blur give its width at half
+    height (:meth:`ProfileTables.measured_width`).  In a linear camera the measured
+    width matches (within a few hundredths of a pixel); a camera that stores
+    ``light ** (1 / gamma)`` puts the half height lower on the edges and reads
+    every line wider.  This is how ``lightflow rig blur`` measures the camera's
+    response.
+
+    Parameters
+    ----------
+    m, r, line : numpy.ndarray
+        Per grid cell, the measured width at half height and 50->20 % ramp, and
+        the line's width (camera px); bands wider than their line by more than a
+        pixel (moving) are left out.
+    min_bands : int
+
+    Returns
+    -------
+    (float, int) or None
+        The median excess width (camera px) and the number of lines, or None
+        with fewer than ``min_bands`` lines.
+    """
+    m, r, line = (np.asarray(v, np.float64).ravel() for v in (m, r, line))
+    ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & (m < line + 1.0) & (line > 0.0)
+    m, r, line = m[ok], r[ok], line[ok]
+    if m.size < min_bands:
+        return None
+    t = tables()
+    cols, sigma = _ramp_sigma(lambda sg: t.ramp(np.zeros_like(m), line, sg) - r)
+    if cols.size < min_bands:
+        return None
+    excess = m[cols] - t.measured_width(np.zeros(cols.size), line[cols], sigma)
+    excess = excess[np.isfinite(excess)]
+    if excess.size < min_bands:
+        return None
+    return float(np.median(excess)), int(excess.size)
+
+
 def static_blur(m, r, line, scale, slant=None, min_bands: int = 200):
     """Fit the blur model on lines that stand still (a calibration: ``L = 0``).
 

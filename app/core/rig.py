@@ -79,15 +79,15 @@ class CameraModel:
     """Pinhole camera with OpenCV distortion.
 
     ``gamma`` is the camera's response, ``DN = full * (light / full) ** (1 / gamma)``:
-    1 for a linear camera (the file's default); the pipeline linearises every
-    frame with it.
+    1 for a linear camera, None when the rig file does not say (taken as 1); the
+    pipeline linearises every frame with it.
     """
 
     width: int
     height: int
     K: np.ndarray = field(repr=False)
     dist: np.ndarray = field(repr=False)
-    gamma: float = 1.0
+    gamma: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d = {
@@ -96,7 +96,7 @@ class CameraModel:
             "K": self.K.tolist(),
             "dist": self.dist.tolist(),
         }
-        if self.gamma != 1.0:
+        if self.gamma is not None:
             d["gamma"] = self.gamma
         return d
 
@@ -447,7 +447,7 @@ def rig_from_dict(data: Any, source: str = "rig") -> Rig:
     if data["format"] != RIG_FORMAT:
         raise rd.fail("format", f"expected {RIG_FORMAT!r}, got {short_json(data['format'])}")
     cam_d = rd.obj(data["camera"], "camera", {"width", "height", "K", "dist"}, {"gamma"})
-    gamma = 1.0
+    gamma = None
     if "gamma" in cam_d:
         gamma = rd.number(cam_d["gamma"], "camera.gamma")
         if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:
