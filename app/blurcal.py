@@ -25,15 +25,11 @@ import numpy as np
 from lightflow.app.core.errors import CalibrationError
 from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
 from lightflow.app.core.profile_model import static_blur, static_width_excess
-from lightflow.app.core.rig import GAMMA_RANGE, Rig
+from lightflow.app.core.response import MIN_STILL_LINES, find_gamma
+from lightflow.app.core.rig import Rig
 
 #: magnifications must span this ratio for the projector's part to be told from the camera's
 MIN_MAGNIFICATION_SPAN = 1.15
-#: a measured gamma this close to 1 is a linear camera (linear renders of the tuning rigs
-#: measure 1.00-1.01), so a linear camera keeps exactly its values and its speed
-LINEAR_SNAP = 0.05
-#: static lines needed on both sides of the answer
-MIN_RESPONSE_LINES = 500
 
 
 @dataclass(frozen=True)
@@ -44,9 +40,10 @@ class CameraResponse:
     ----------
     gamma : float
         ``DN = full * (light / full) ** (1 / gamma)``; exactly 1 when the
-        measurement was within :data:`LINEAR_SNAP` of it.
+        measurement was close to it.
     measured : float
-        The measurement itself, before that snap.
+        The measurement itself, before that snap (``LINEAR_SNAP`` of
+        :mod:`lightflow.app.core.response`).
     lines : int
         Static line measurements (grid cells) at the answer.
     excess_linear_px : float
@@ -60,13 +57,8 @@ class CameraResponse:
 
 
 def measure_response(rig: Rig, frames: Iterable, stride: int = 4) -> CameraResponse:
-    """The camera's gamma from frames of static surfaces.
-
-    Each candidate gamma linearises the frames; the answer is where the static
-    lines' excess width at half height (:func:`static_width_excess`) falls
-    through 0.  The excess falls as the candidate rises: too small a gamma leaves
-    the lines wide.  A grid of candidates (log-spaced over the rig file's range)
-    brackets the root, then bisection refines it.
+    """The camera's gamma from frames of static surfaces (:func:`lightflow.app.core.response.
+    find_gamma` over their static lines).
 
     Parameters
     ----------
@@ -91,42 +83,19 @@ def measure_response(rig: Rig, frames: Iterable, stride: int = 4) -> CameraRespo
 
     def excess(log_gamma: float):
         pipeline.camera_gamma = float(np.exp(log_gamma))
-        cols = [[], [], []]
-        for frame in frames:
-            lines = pipeline.flow_model.line_samples(pipeline.band_grids(frame))
-            for p in range(2):
-                for c in range(3):
-                    cols[c].append(lines[p, c])
-        return static_width_excess(*(np.concatenate(c) for c in cols),
-                                   min_bands=MIN_RESPONSE_LINES)  # fmt: skip
+        samples = np.concatenate(
+            [pipeline.flow_model.line_samples(pipeline.band_grids(f)) for f in frames], axis=2)
+        m, r, line = (samples[:, c].ravel() for c in range(3))
+        return static_width_excess(m, r, line, min_bands=MIN_STILL_LINES)
 
     at_linear = excess(0.0)
-    grid = np.linspace(np.log(GAMMA_RANGE[0]), np.log(GAMMA_RANGE[1]), 19)
-    prev = None
-    for g in grid:
-        e = excess(float(g))
-        if e is not None and prev is not None and prev[1] > 0.0 >= e[0]:
-            lo, hi = prev[0], float(g)
-            break
-        prev = (float(g), e[0]) if e is not None else None
-    else:
+    found = find_gamma(excess, MIN_STILL_LINES)
+    if found is None:
         raise CalibrationError(
             f"rig blur: the camera's response could not be measured on {len(frames)} frame(s): "
             f"expected still surfaces lit by both patterns, in focus range"
         )
-    lines = 0
-    for _ in range(10):  # to within 0.1 % in gamma
-        mid = 0.5 * (lo + hi)
-        e = excess(mid)
-        if e is None:
-            break
-        lines = e[1]
-        if e[0] > 0.0:
-            lo = mid
-        else:
-            hi = mid
-    measured = float(np.exp(0.5 * (lo + hi)))
-    gamma = 1.0 if abs(measured - 1.0) < LINEAR_SNAP else round(measured, 3)
+    gamma, measured, lines = found
     return CameraResponse(gamma, measured, lines,
                           at_linear[0] if at_linear is not None else float("nan"))  # fmt: skip
 

@@ -135,14 +135,16 @@ def describe_response(pipeline) -> str:
     run whose rig does not say says how to measure it.
     """
     gamma = pipeline.camera_gamma
-    given = pipeline.config.camera_gamma is not None
-    source = "from --camera-gamma" if given else "from the rig file"
+    source = {"option": "from --camera-gamma", "rig": "from the rig file",
+              "still lines": f"measured {pipeline.gamma_measured:.3f} on lines that stood "
+                             f"still between the first frames (a wall)"}.get(pipeline.gamma_source)
+    if source is None:
+        return ("camera response: taken as linear (the rig file gives no camera.gamma and no "
+                "lines stood still to measure it on): a webcam or an sRGB image reads every "
+                "depth long; `lightflow rig blur` measures it")
     if gamma != 1.0:
         return f"camera response: gamma {gamma:g} ({source}): frames linearised"
-    if given or pipeline.rig.camera.gamma is not None:
-        return f"camera response: linear ({source})"
-    return ("camera response: taken as linear (the rig file gives no camera.gamma): a webcam "
-            "or an sRGB image reads every depth long; `lightflow rig blur` measures it")
+    return f"camera response: linear ({source})"
 
 
 #: ``RunStats.extra`` key prefix of the grid pixels without depth, summed over a run

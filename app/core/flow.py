@@ -552,6 +552,12 @@ class FlowModel:
         self.frames += 1
         return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why)
 
+    def replace_previous(self, grids: np.ndarray) -> None:
+        """The previous frame's grids measured again (the camera's response changed):
+        the still lines of the next :meth:`combine` are found against these."""
+        if self._prev is not None:
+            self._prev = grids[:, :2].copy()
+
     def still_depth(self, params: FlowParams) -> bool:
         """Whether lines that stand still get a depth (one projector, see ``static_depth``)."""
         return self.single and params.static_depth != "off"

@@ -16,8 +16,9 @@ from . import causes as cz
 from . import response as rsp
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
-from .flow import FlowModel, FlowParams, smooth_log_ratio
+from .flow import STILL_LINE_FRAMES, STILL_TOLERANCE_PX, FlowModel, FlowParams, smooth_log_ratio
 from .intervals import IntervalModel
+from .profile_model import static_width_excess
 from .results import BandSet, FrameResult, upsample_grid
 from .rig import CHANNEL_INDEX, Rig
 
@@ -171,7 +172,15 @@ class DepthPipeline:
         #: the camera's response (1: linear), and the table that undoes it for the
         #: last frame's type
         self.camera_gamma = cfg.camera_gamma or rig.camera.gamma or 1.0
+        #: where the response came from: "option", "rig", "still lines" or "" (taken as 1)
+        self.gamma_source = ("option" if cfg.camera_gamma is not None
+                             else "rig" if rig.camera.gamma is not None else "")  # fmt: skip
+        #: the measurement on still lines before it was rounded to 1 (NaN: none)
+        self.gamma_measured = float("nan")
         self._linear_table: tuple | None = None
+        # neither option nor rig gives the response: measured on the lines that stand
+        # still between the first frames (a wall), as the blur is; the frame before
+        self._gamma_prev: tuple | None = None
 
     # ------------------------------------------------------------------ stages
 
@@ -301,7 +310,8 @@ class DepthPipeline:
         schedule (:meth:`FlowModel.refits_at`).
         """
         return (frame % self.config.crosstalk_every == 0
-                or self.flow_model.refits_at(frame, self.config.flow))  # fmt: skip
+                or self.flow_model.refits_at(frame, self.config.flow)
+                or (not self.gamma_source and frame <= STILL_LINE_FRAMES[-1]))  # fmt: skip
 
     def band_grids(self, frame) -> np.ndarray:
         """The band measurements of one frame on the analysis grid (no flow, no depth).
@@ -322,6 +332,10 @@ class DepthPipeline:
         t0 = time.perf_counter()
         timings = {}
         bands, counts, grids = self._measure(frame, timings)
+        if not self.gamma_source and self._frames <= STILL_LINE_FRAMES[-1]:
+            again = self._response_from_still_lines(frame, grids, timings)
+            if again is not None:
+                bands, counts, grids = again
         t2 = time.perf_counter()
         fm = self.flow_model.combine(grids, cfg.flow)
         self.blur_px = fm.blur_px
@@ -386,8 +400,12 @@ class DepthPipeline:
             intervals_grid=grids[:, 1],
         )
 
-    def _measure(self, frame, timings: dict):
-        """Unmix and measure the bands of ``frame``: ``(bands, counts, grids)``."""
+    def _measure(self, frame, timings: dict, buffers=None):
+        """Unmix and measure the bands of ``frame``: ``(bands, counts, grids)``.
+
+        ``bands`` and ``counts`` are views of ``buffers`` (default: the pipeline's
+        scratch, overwritten by the next call).
+        """
         cfg = self.config
         image = frame.image
         cam = self.rig.camera
@@ -416,8 +434,9 @@ class DepthPipeline:
         timings["unmix"] = (t1 - t0) * 1e3
         gh, gw = self.grid_shape
         bands, counts = self._detect(
-            image, weights, self._row_y, self._windows, self._rows_per_cell, self._buffers
-        )
+            image, weights, self._row_y, self._windows, self._rows_per_cell,
+            self._buffers if buffers is None else buffers,
+        )  # fmt: skip
         for p in range(2):
             bd.band_slants(bands[p], counts[p], self._row_y)
         k = self._rows_per_cell
@@ -426,6 +445,46 @@ class DepthPipeline:
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
         timings["bands"] = (time.perf_counter() - t1) * 1e3
         return bands, counts, grids
+
+    def _response_from_still_lines(self, frame, grids, timings):
+        """Measure the camera's response on the lines that stood still since the last frame.
+
+        Between the first frames (:data:`STILL_LINE_FRAMES`) a wall's lines stand
+        still: :func:`~lightflow.app.core.response.find_gamma` over them, each
+        candidate measuring this frame's bands again.  When the camera is not
+        linear, this frame and the previous one are measured again linearised
+        (the flow model finds its still lines against the previous one) and
+        ``(bands, counts, grids)`` returned; else None.
+        """
+        prev, self._gamma_prev = self._gamma_prev, (frame, grids)
+        if prev is None or self._frames not in STILL_LINE_FRAMES:
+            return None
+        with np.errstate(invalid="ignore"):
+            still = ((np.abs(grids[:, 0] - prev[1][:, 0]) < STILL_TOLERANCE_PX)
+                     & (np.abs(grids[:, 1] - prev[1][:, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+        if np.count_nonzero(still) < rsp.MIN_STILL_LINES:
+            return None
+        keep = still.reshape(2, -1)
+        # the candidates' bands go to their own scratch: this frame's stay in the pipeline's
+        scratch = tuple(np.empty_like(b) for b in self._buffers)
+
+        def excess(log_gamma: float):
+            self.camera_gamma = float(np.exp(log_gamma))
+            samples = self.flow_model.line_samples(self._measure(frame, {}, scratch)[2])
+            m, r, line = (samples[:, c][keep] for c in range(3))
+            return static_width_excess(m, r, line, min_bands=rsp.MIN_STILL_LINES)
+
+        found = rsp.find_gamma(excess, rsp.MIN_STILL_LINES)
+        self.camera_gamma = 1.0
+        if found is None:
+            return None
+        self.camera_gamma, self.gamma_measured, _ = found
+        self.gamma_source = "still lines"
+        self._gamma_prev = None
+        if self.camera_gamma == 1.0:
+            return None
+        self.flow_model.replace_previous(self._measure(prev[0], {}, scratch)[2])
+        return self._measure(frame, timings)
 
     def _linearise(self, image: np.ndarray) -> np.ndarray:
         """``image`` in linear values (and the full scale set to theirs), unless the camera is."""

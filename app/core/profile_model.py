@@ -685,7 +685,7 @@ def blur_model(sigma2, k2, s2) -> tuple[float, float]:
     return a, float(b)
 
 
-def static_width_excess(m, r, line, min_bands: int = 200):
+def static_width_excess(m, r, line, min_bands: int = 200, max_bands: int = 20000):
     """How much wider static lines are at half height than their ramps say they should be.
 
     A static line is a box of known width blurred: its ramp gives its blur sigma
@@ -703,6 +703,8 @@ def static_width_excess(m, r, line, min_bands: int = 200):
         the line's width (camera px); bands wider than their line by more than a
         pixel (moving) are left out.
     min_bands : int
+    max_bands : int
+        More lines are thinned evenly to this many (a median needs no more).
 
     Returns
     -------
@@ -712,7 +714,9 @@ def static_width_excess(m, r, line, min_bands: int = 200):
     """
     m, r, line = (np.asarray(v, np.float64).ravel() for v in (m, r, line))
     ok = np.isfinite(m) & np.isfinite(r) & np.isfinite(line) & (m < line + 1.0) & (line > 0.0)
-    m, r, line = m[ok], r[ok], line[ok]
+    idx = np.flatnonzero(ok)
+    idx = idx[:: max(1, -(-idx.size // max_bands))]
+    m, r, line = m[idx], r[idx], line[idx]
     if m.size < min_bands:
         return None
     t = tables()
