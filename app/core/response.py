@@ -96,8 +96,10 @@ def find_gamma(excess, min_lines: int):
     linearised with that gamma (:func:`lightflow.app.core.profile_model.
     static_width_excess`) and how many lines it is over, or None when too few
     lines are left.  It falls as the gamma rises (too small a gamma leaves the
-    lines wide); a grid of candidates, log-spaced over :data:`GAMMA_RANGE`,
-    brackets its fall through 0, and bisection refines it.
+    lines wide).  When it falls through 0 between the bounds of
+    :data:`LINEAR_SNAP` the camera is linear (two candidates); else a grid of
+    candidates, log-spaced over :data:`GAMMA_RANGE`, brackets its fall through
+    0, and bisection refines it.
 
     Parameters
     ----------
@@ -113,6 +115,13 @@ def find_gamma(excess, min_lines: int):
         before that snap, and the lines at the answer; None when no candidate
         brackets the root.
     """
+    # most cameras are linear: two candidates at the snap's bounds settle that at once
+    lo, hi = np.log(1.0 - LINEAR_SNAP), np.log(1.0 + LINEAR_SNAP)
+    e_lo, e_hi = excess(float(lo)), excess(float(hi))
+    if (e_lo is not None and e_hi is not None and min(e_lo[1], e_hi[1]) >= min_lines
+            and e_lo[0] > 0.0 >= e_hi[0]):  # fmt: skip
+        at = lo + (hi - lo) * e_lo[0] / (e_lo[0] - e_hi[0])  # the root, interpolated
+        return 1.0, float(np.exp(at)), e_hi[1]
     grid = np.linspace(np.log(GAMMA_RANGE[0]), np.log(GAMMA_RANGE[1]), 13)
     prev = None
     for g in grid:
