@@ -404,6 +404,26 @@ def _decide(
             lr_sys[i, j] = 0.0
 
 
+def still_lines(grids: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """Per pattern and grid cell, whether its line stood still since the previous frame.
+
+    Parameters
+    ----------
+    grids, previous : numpy.ndarray
+        ``(2, >=2, h, w)``: per pattern, the band width at half height and the line
+        interval (the first two fields of :meth:`FlowModel.combine`'s grids) of this
+        frame and the one before.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(2, h, w)`` bool: both agree within :data:`STILL_TOLERANCE_PX`.
+    """
+    with np.errstate(invalid="ignore"):
+        return ((np.abs(grids[:, 0] - previous[:, 0]) < STILL_TOLERANCE_PX)
+                & (np.abs(grids[:, 1] - previous[:, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+
+
 class FlowModel:
     """Pattern geometry needed to turn band measurements into flows for one rig."""
 
@@ -590,9 +610,7 @@ class FlowModel:
         differ by :data:`MIN_STILL_SPAN`; else the fit on moving bands stays.
         """
         samples = self.line_samples(grids)
-        with np.errstate(invalid="ignore"):
-            still = ((np.abs(grids[:, 0] - self._prev[:, 0]) < STILL_TOLERANCE_PX)
-                     & (np.abs(grids[:, 1] - self._prev[:, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+        still = still_lines(grids, self._prev)
         samples[:, 0] = np.where(still.reshape(2, -1), samples[:, 0], np.nan)
         # both patterns pooled: one optics model
         m, r, line, scale, slant = samples.transpose(1, 0, 2).reshape(5, -1)

@@ -16,7 +16,7 @@ from . import causes as cz
 from . import response as rsp
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
-from .flow import STILL_LINE_FRAMES, STILL_TOLERANCE_PX, FlowModel, FlowParams, smooth_log_ratio
+from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
 from .intervals import IntervalModel
 from .profile_model import static_width_excess
 from .results import BandSet, FrameResult, upsample_grid
@@ -456,12 +456,12 @@ class DepthPipeline:
         (the flow model finds its still lines against the previous one) and
         ``(bands, counts, grids)`` returned; else None.
         """
-        prev, self._gamma_prev = self._gamma_prev, (frame, grids)
+        prev = self._gamma_prev
+        # kept for the next frame's comparison, never past the last frame that compares
+        self._gamma_prev = (frame, grids) if self._frames < STILL_LINE_FRAMES[-1] else None
         if prev is None or self._frames not in STILL_LINE_FRAMES:
             return None
-        with np.errstate(invalid="ignore"):
-            still = ((np.abs(grids[:, 0] - prev[1][:, 0]) < STILL_TOLERANCE_PX)
-                     & (np.abs(grids[:, 1] - prev[1][:, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+        still = still_lines(grids, prev[1])
         if np.count_nonzero(still) < rsp.MIN_STILL_LINES:
             return None
         keep = still.reshape(2, -1)
