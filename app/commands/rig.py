@@ -44,9 +44,9 @@ examples:
 BLUR_DESCRIPTION = """\
 Measure the camera's response curve and how blurred each pattern's lines are
 in the camera, once per rig, and write both into the rig file (camera.gamma and
-each pattern's "blur").  Fast objects (a fan at
-1 ms, a ball at 5 ms) move their lines less than the lines' own width; their
-sweep then shows only in the edges of the band, and reading it needs the blur.
+each pattern's "blur").  Fast objects (a fan at 1 ms, a ball at 5 ms) move
+their lines less than the lines' own width; their sweep then shows only in the
+edges of the band, and reading it needs the blur.
 Without this measurement the pipeline fits the blur on the moving bands of the
 first frames of every run, which is noisier and biased on short bands.
 
