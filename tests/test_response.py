@@ -33,3 +33,28 @@ def test_linearise_maps_every_value_through_the_table():
     out = linearise(image, table)
     assert out.dtype == np.uint16 and out.shape == image.shape
     assert np.array_equal(out, table[image])
+
+
+def test_find_gamma_finds_the_root_and_settles_a_linear_camera_at_once():
+    from lightflow.app.core.response import LINEAR_SNAP, find_gamma
+
+    calls = []
+
+    def excess_for(gamma_true, lines=5000):
+        def excess(log_gamma):
+            calls.append(log_gamma)
+            # wider lines below the true gamma; too few lines far above it (faint bands)
+            return (1.3 * (np.log(gamma_true) - log_gamma), lines if log_gamma < 1.2 else 10)
+
+        return excess
+
+    gamma, measured, lines = find_gamma(excess_for(2.2), 500)
+    assert gamma == pytest.approx(2.2, rel=0.005) and measured == pytest.approx(gamma, abs=1e-3)
+    assert lines == 5000
+    calls.clear()
+    gamma, measured, _ = find_gamma(excess_for(1.02), 500)
+    assert gamma == 1.0 and measured == pytest.approx(1.02, rel=0.002) and len(calls) == 2
+    assert find_gamma(excess_for(1.0 + 2 * LINEAR_SNAP), 500)[0] == pytest.approx(1.1, rel=0.005)
+    # too few lines everywhere, or no fall through 0: no answer
+    assert find_gamma(excess_for(2.2, lines=100), 500) is None
+    assert find_gamma(lambda lg: (0.5, 5000), 500) is None
