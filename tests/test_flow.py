@@ -54,3 +54,37 @@ def test_bands_longer_than_the_tables_are_measured():
         log_ratio, flows = out.log_ratio, out.flows
         assert np.allclose(flows[0], m / 200.0 * pat1.pitch_px, rtol=2e-3)
         assert np.allclose(log_ratio, np.log(m / 200.0) - np.log(20.0 / 40.0), atol=3e-3)
+
+
+def test_reread_takes_the_corrected_interval_into_the_line_width():
+    """Sweeps read again with corrected intervals (the sparse pattern's, predicted).
+
+    A long band's width is its sweep, so only ``L / B`` changes: the flow by
+    ``exp(fix)``.  A sweep shorter than the line is read against the line's width,
+    which is the interval over the pitch: it changes by more (measured: a factor
+    0.955 where ``exp(fix)`` is 0.970).  No correction, no change; a cell the first
+    reading left out stays out.
+    """
+    rig = resolve_rig("two-projector").with_blur([(0.4, 0.0), (0.4, 0.0)])
+    model = FlowModel(rig)
+    params = FlowParams()
+    for m0, ramp, short in ((16.0, 1.2, False), (4.7, 2.0, True)):
+        grids = _grids((m0, 14.0), (60.0, 36.0), ramp=ramp)
+        first = model.combine(grids, params)
+        assert np.isfinite(first.log_ratio).all()
+        fix = np.zeros((2,) + grids.shape[2:], np.float32)
+        same = model.reread(first, grids, fix, params)
+        assert np.array_equal(same.log_ratio, first.log_ratio)
+        fix[0] = -0.03  # the predicted interval 3 % longer than the measured one
+        again = model.reread(first, grids, fix, params)
+        ratio = again.flows[0] / first.flows[0]
+        if short:
+            assert (np.abs(ratio - np.exp(-0.03)) > 0.01).all(), ratio
+        else:
+            assert np.allclose(ratio, np.exp(-0.03), rtol=2e-3), ratio
+        assert np.allclose(again.flows[1], first.flows[1], rtol=1e-3)
+    overlapping = _grids((16.0, 30.0), (60.0, 36.0))
+    first = model.combine(overlapping, params)
+    again = model.reread(first, overlapping, fix, params)
+    assert np.isnan(again.log_ratio).all()
+    assert (again.why == causes.OVERLAP).all()

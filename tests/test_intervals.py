@@ -37,11 +37,13 @@ def rig():
 def test_prediction_from_true_dense_interval_is_the_true_sparse_one(rig, scene, t, monkeypatch):
     """Given the true dense interval and depth, the predicted sparse interval is the true one.
 
-    Every cell is predicted here, however alike the two intervals (DENSER = 1).
-    Measured: median 0.1-0.3 %, p90 under 1 % (the tables' interpolation and the
-    finite differences of the truth).
+    Every cell is predicted here, however alike the two intervals (DENSER = 1), and
+    however much the depth moves the prediction (DEPTH_TOLERANCE = 0: the geometry
+    alone; the depth test is below).  Measured: median 0.1-0.3 %, p90 under 1 % (the
+    tables' interpolation and the finite differences of the truth).
     """
     monkeypatch.setattr(intervals_module, "DENSER", 1.0)
+    monkeypatch.setattr(intervals_module, "DEPTH_TOLERANCE", 0.0)
     intervals, depth = _true_grid(rig, scene, t)
     model = IntervalModel(rig, STRIDE, DepthRange())
     lg, have = model.disagreement(intervals, depth)
@@ -68,12 +70,15 @@ def test_no_correction_on_a_plane_with_noisy_intervals(rig, monkeypatch):
     assert np.count_nonzero(fix[:, on]) < 0.01 * on.sum()
 
 
-def test_a_ball_whose_sparse_interval_is_short_is_corrected(rig):
+def test_a_ball_whose_sparse_interval_is_short_is_corrected(rig, monkeypatch):
     """The sparse interval measured 8 % short on a ball is put back to the tolerance.
 
     The correction is soft (the disagreement beyond DISAGREE_LOG): what is left is
-    the tolerance, 3 %, where the ball bends its intervals.
+    the tolerance, 3 %, where the ball bends its intervals.  On this rig a depth 5 %
+    off moves nearly every prediction by more than the tolerance, so the depth test
+    (below) is off here (DEPTH_TOLERANCE = 0): this tests the correction itself.
     """
+    monkeypatch.setattr(intervals_module, "DEPTH_TOLERANCE", 0.0)
     intervals, depth = _true_grid(rig, "ball", 0.1)
     sparse = int(np.nanmedian(intervals[1]) > np.nanmedian(intervals[0]))
     measured = intervals.copy()
@@ -85,3 +90,34 @@ def test_a_ball_whose_sparse_interval_is_short_is_corrected(rig):
     after = np.log(measured[sparse][on] / intervals[sparse][on]) - fix[sparse][on]
     tol = intervals_module.DISAGREE_LOG
     assert abs(np.median(after)) < tol + 0.005, np.median(after)
+
+
+def test_no_prediction_where_the_depth_moves_it_beyond_the_tolerance(rig, monkeypatch):
+    """A prediction is made only where a depth off by DEPTH_TOLERANCE either way moves
+    it by at most DISAGREE_LOG: the depth comes from flows the measured interval
+    biases, and a prediction that follows the depth would hold that bias.
+
+    Checked cell by cell against the predictions at the depth and 5 % either side
+    (the test off).  On this rig, with its projectors on either side of the camera,
+    nearly every cell of the ball fails it.
+    """
+    monkeypatch.setattr(intervals_module, "DENSER", 1.0)
+    intervals, depth = _true_grid(rig, "ball", 0.1)
+    model = IntervalModel(rig, STRIDE, DepthRange())
+    tol = intervals_module.DEPTH_TOLERANCE
+    assert tol > 0
+    gated, have = model.disagreement(intervals, depth)
+    monkeypatch.setattr(intervals_module, "DEPTH_TOLERANCE", 0.0)
+    lg, base = model.disagreement(intervals, depth)
+    lg_near, have_near = model.disagreement(intervals, depth * (1 - tol))
+    lg_far, have_far = model.disagreement(intervals, depth * (1 + tol))
+    on = (base.sum(axis=0) > 0) & (have_near.sum(axis=0) > 0) & (have_far.sum(axis=0) > 0)
+    assert on.sum() > 200
+    moved = np.maximum(np.abs(lg_near - lg), np.abs(lg_far - lg)).sum(axis=0)
+    kept = have.sum(axis=0) > 0
+    margin = 1e-3  # the test interpolates the depth tables at slightly other depths
+    steady = moved < intervals_module.DISAGREE_LOG - margin
+    shaky = moved > intervals_module.DISAGREE_LOG + margin
+    assert (kept[on & steady]).all()
+    assert not (kept[on & shaky]).any()
+    assert np.allclose(gated[:, kept], lg[:, kept])

@@ -514,9 +514,7 @@ class FlowModel:
         -------
         FlowMaps
         """
-        tab = tables()
         f = self.frames
-        still = self.still_depth(params)
         # the optics do not change: refit on the pooled bands of the recent frames, often
         # while the pool fills (frames 0, 1, 2, 4, 8), then now and then
         if f in STILL_LINE_FRAMES and self._prev is not None and self.blur_source != "rig":
@@ -527,6 +525,38 @@ class FlowModel:
             self._refit_blur(grids)
         elif self.calibrated and f == 0:
             self._show_blur(self.magnifications(grids))
+        self.frames += 1
+        return self.recombine(grids, params)
+
+    def reread(self, first: FlowMaps, grids: np.ndarray, fix: np.ndarray,
+               params: FlowParams) -> FlowMaps:
+        """The flows of ``first`` read again with the line intervals corrected by ``fix``.
+
+        ``fix`` is per pattern ``log(B_measured / B_predicted)`` (:mod:`.intervals`).
+        The interval sets not only ``L / B`` but also the line's width in camera px
+        (``B`` over the pitch), and a sweep shorter than the line is read against
+        that width: an interval a few per cent short reads such a sweep long by
+        about as much again times the line over the sweep (twice as much at half a
+        line width).  So the sweeps are measured again with the predicted
+        intervals.  Which cells move, and their expected error, stay those of
+        ``first`` (the correction is smooth, not noise of the sweeps); where a sweep
+        read again is no longer measurable, the first reading stands, its ``L / B``
+        over the predicted interval.
+        """
+        fixed = grids.copy()
+        fixed[:, 1] *= np.exp(-fix)
+        second = self.recombine(fixed, params)
+        again = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
+        log_ratio = np.where(again, second.log_ratio, first.log_ratio + fix[0] - fix[1])
+        flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
+                 .astype(np.float32) for p in range(2)]  # fmt: skip
+        return FlowMaps(log_ratio.astype(np.float32), flows, first.blur_px, first.lr_var,
+                        first.lr_sys, first.why)  # fmt: skip
+
+    def recombine(self, grids: np.ndarray, params: FlowParams) -> FlowMaps:
+        """:meth:`combine` without touching the blur model (for :meth:`reread`)."""
+        tab = tables()
+        still = self.still_depth(params)
         gh, gw = grids.shape[2:]
         sweeps = np.empty((2, gh, gw), np.float32)
         moving_at = np.empty((2, gh, gw), np.float32)
@@ -569,7 +599,6 @@ class FlowModel:
             params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio, flows,
             lr_var, lr_sys, why,
         )  # fmt: skip
-        self.frames += 1
         return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why)
 
     def replace_previous(self, grids: np.ndarray) -> None:

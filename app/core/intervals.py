@@ -15,7 +15,13 @@ the ray, both known from the rig.  The dense pattern's interval ``B_d =
 P_d / |du_d/dx|`` fixes ``dz/dx``; that predicts the sparse pattern's interval
 ``B_s = P_s / |du_s/dx|``, from lines a few pixels away instead of a whole
 sparse interval.  Where the measured and predicted intervals of the sparse
-pattern disagree by more than :data:`DISAGREE_LOG`, the prediction is used.
+pattern disagree by more than :data:`DISAGREE_LOG`, the prediction is used, and
+the sweeps are read again with it (:meth:`FlowModel.reread`: the interval also
+sets the line's width that a short sweep is read against).  The prediction
+needs the depth, which comes from the flows the measured interval biases: it is
+made only where a depth off by :data:`DEPTH_TOLERANCE` would not move it by more
+than that tolerance, else a biased depth would hold the correction where the
+bias put it.
 
 Two projectors with uniform patterns only (with one projector the intervals
 themselves are the measurement).
@@ -51,6 +57,16 @@ COARSE = 8
 #: prediction replaces the measurement (the prediction's own error is 1-2 %;
 #: chosen on the tuning rigs of the evaluation matrix)
 DISAGREE_LOG = 0.03
+#: a cell takes the averaged disagreement when the cells around it that have a
+#: prediction weigh at least this much in the average (not only the cells with one:
+#: the sweeps are read again with the corrected interval and averaged over a few cells,
+#: and a correction with holes would mix corrected and uncorrected sweeps; chosen on
+#: the tuning rigs)
+NEAR_WEIGHT = 0.3
+#: the relative depth error a pixel that keeps its depth may have (the pipeline's
+#: ``max_depth_std``): the prediction needs the depth, and where a depth off by this
+#: much either way moves it by more than :data:`DISAGREE_LOG`, it is not made
+DEPTH_TOLERANCE = 0.05
 
 
 class IntervalModel:
@@ -138,7 +154,8 @@ class IntervalModel:
             # soft: the part beyond the tolerance, so the correction has no step where
             # the disagreement crosses it (a step reads as an outlier to the smoothing)
             soft = np.sign(mean) * np.maximum(np.abs(mean) - DISAGREE_LOG, 0.0)
-            out[p] = np.where(have[p] > 0, soft, 0.0)
+            near = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS) >= NEAR_WEIGHT
+            out[p] = np.where(near & np.isfinite(intervals[p]), soft, 0.0)
         return out
 
     def disagreement(self, intervals: np.ndarray, depth: np.ndarray):
@@ -161,7 +178,8 @@ class IntervalModel:
         lg = np.zeros((2, *depth.shape), np.float32)
         have = np.zeros((2, *depth.shape), np.float32)
         run_rows(_disagreement, depth.shape[0], intervals, depth, self.a, self.c, self.pitch,
-                 self.inv_z0, self.inv_z_step, COARSE, DENSER, lg, have)  # fmt: skip
+                 self.inv_z0, self.inv_z_step, COARSE, DENSER, DEPTH_TOLERANCE, DISAGREE_LOG,
+                 lg, have)  # fmt: skip
         return lg, have
 
     def _curved(self, intervals: np.ndarray, sparse: int, sparse_interval: float) -> np.ndarray:
@@ -179,6 +197,10 @@ class IntervalModel:
             return np.zeros(b.shape, bool)
         side = np.full(b.shape, np.nan, np.float32)
         side[:, h:-h] = 0.5 * (b[:, : -2 * h] + b[:, 2 * h :])
+        # both sides measured: across a gap (an object's edge) may be another surface,
+        # whose intervals are no bend of this one
+        valid = dense > 0
+        side[:, h:-h][~(valid[:, : -2 * h] & valid[:, 2 * h :])] = np.nan
         with np.errstate(invalid="ignore"):
             return np.abs(side / b - 1.0) > CURVED
 
@@ -204,11 +226,38 @@ def _at(tab, p, k, f, r0, fr, c0, fc):
 
 
 @nb.njit(cache=True, nogil=True)
-def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, denser, out,
-                  have, i0, i1):  # fmt: skip
-    """``out[s]``: log(measured / predicted) interval of the sparse pattern ``s`` of each
-    cell, ``have[s]`` 1 there (grid rows ``i0 .. i1``)."""
+def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
+    """The sparse pattern ``s``'s ``du/dx`` predicted from the dense ``d``'s interval
+    ``b_dense`` at depth index ``t``; 0 where there is no prediction."""
     nz = a.shape[1]
+    if not (0.0 <= t <= nz - 1):
+        return 0.0
+    k = min(int(t), nz - 2)
+    f = t - k
+    ad = _at(a, d, k, f, r0, fr, c0, fc)
+    cd = _at(c, d, k, f, r0, fr, c0, fc)
+    as_ = _at(a, s, k, f, r0, fr, c0, fc)
+    cs = _at(c, s, k, f, r0, fr, c0, fc)
+    if cd == 0.0 or ad == 0.0:
+        return 0.0
+    # the measured dense interval fixes dz/dx (same sign of du/dx as at a fixed depth)
+    du_d = math.copysign(pitch[d] / b_dense, ad)
+    g = (du_d - ad) / cd
+    du_s = as_ + g * cs
+    if du_s == 0.0 or (du_s > 0.0) != (as_ > 0.0):
+        return 0.0  # the prediction folds the surface over: keep the measurement
+    return du_s
+
+
+@nb.njit(cache=True, nogil=True)
+def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, denser, depth_tol,
+                  tol, out, have, i0, i1):  # fmt: skip
+    """``out[s]``: log(measured / predicted) interval of the sparse pattern ``s`` of each
+    cell, ``have[s]`` 1 there (grid rows ``i0 .. i1``).
+
+    Only where the prediction moves by less than ``tol`` (log) when the depth is off
+    by ``depth_tol`` (relative) either way.
+    """
     gw = depth.shape[1]
     for i in range(i0, i1):
         r0 = i // coarse
@@ -219,11 +268,6 @@ def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, den
             b1 = intervals[1, i, j]
             if not (z > 0.0 and b0 > 0.0 and b1 > 0.0):
                 continue
-            t = (1.0 / z - inv_z0) / inv_z_step
-            if not (0.0 <= t <= nz - 1):
-                continue
-            k = min(int(t), nz - 2)
-            f = t - k
             c0 = j // coarse
             fc = (j - c0 * coarse) / coarse
             # the dense pattern (the shorter interval) is the reference, if it samples the
@@ -232,17 +276,21 @@ def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, den
             s = 1 - d
             if intervals[s, i, j] < denser * intervals[d, i, j]:
                 continue
-            ad = _at(a, d, k, f, r0, fr, c0, fc)
-            cd = _at(c, d, k, f, r0, fr, c0, fc)
-            as_ = _at(a, s, k, f, r0, fr, c0, fc)
-            cs = _at(c, s, k, f, r0, fr, c0, fc)
-            if cd == 0.0 or ad == 0.0:
+            t = (1.0 / z - inv_z0) / inv_z_step
+            du_s = _predict(a, c, pitch, intervals[d, i, j], d, s, t, r0, fr, c0, fc)
+            if du_s == 0.0:
                 continue
-            # the measured dense interval fixes dz/dx (same sign of du/dx as at a fixed depth)
-            du_d = math.copysign(pitch[d] / intervals[d, i, j], ad)
-            g = (du_d - ad) / cd
-            du_s = as_ + g * cs
-            if du_s == 0.0 or (du_s > 0.0) != (as_ > 0.0):
-                continue  # the prediction folds the surface over: keep the measurement
+            # the depth comes from the flows, which the measured interval biases: where a
+            # depth off by what a kept pixel may be off moves the prediction by more than
+            # the tolerance, it knows no better than the measurement (and would hold the
+            # depth where the bias put it)
+            ok = True
+            for sign in (-1.0, 1.0):
+                tz = (1.0 / (z * (1.0 + sign * depth_tol)) - inv_z0) / inv_z_step
+                du2 = _predict(a, c, pitch, intervals[d, i, j], d, s, tz, r0, fr, c0, fc)
+                if du2 == 0.0 or abs(math.log(du2 / du_s)) > tol:
+                    ok = False
+            if not ok:
+                continue
             out[s, i, j] = math.log(intervals[s, i, j] * abs(du_s) / pitch[s])
             have[s, i, j] = 1.0

@@ -345,12 +345,13 @@ class DepthPipeline:
         # predicted error of each pixel's depth, and no depth where it is too large
         z_raw, dz_dh = depth_and_slope(self.lut, raw)
         if self.intervals is not None:
-            # a flow is L / B: with the predicted interval it changes by B / B_predicted
+            # a flow is L / B, and a sweep shorter than the line is read against the
+            # line's width, B over the pitch: the sweeps are read again with the
+            # predicted interval
             fix = self.intervals.correct(grids[:, 1], z_raw)
             if fix.any():
-                raw = raw + fix[0] - fix[1]
-                for p in range(2):
-                    fm.flows[p] *= np.exp(fix[p])
+                fm = self.flow_model.reread(fm, grids, fix, cfg.flow)
+                raw = fm.log_ratio  # same cells, same causes
                 z_raw, dz_dh = depth_and_slope(self.lut, raw)
         why[np.isfinite(raw) & ~np.isfinite(z_raw)] = cz.DEPTH_RANGE
         sigma_f = cfg.flow.smoothing_px / cfg.stride
