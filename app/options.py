@@ -77,11 +77,12 @@ def add_pipeline_options(p: argparse.ArgumentParser) -> None:
         "single-projector rigs and off for two projectors, whose depth is in the motion)",
     )  # fmt: skip
     p.add_argument(
-        "--camera-gamma", type=float, metavar="G",
+        "--camera-gamma", metavar="G|auto",
         help="the camera's response, DN = full * (light / full) ** (1 / G): 1 for a linear "
         "camera, about 2.2 for a webcam or an sRGB image; every frame is linearised with it "
-        "before the bands are measured (default: the rig's camera.gamma, or 1; `lightflow rig "
-        "blur` measures it)",
+        "before the bands are measured; 'auto' measures it on a wall's lines that stand still "
+        "between the first frames (default: the rig's camera.gamma, or 1; `lightflow rig "
+        "blur` measures it on a still board, which is more reliable)",
     )  # fmt: skip
 
 
@@ -98,10 +99,15 @@ def pipeline_config(args: argparse.Namespace):
                               f"got {smoothing}")  # fmt: skip
         flow["smoothing_px"] = smoothing
     gamma = getattr(args, "camera_gamma", None)
-    lo, hi = GAMMA_RANGE
-    if gamma is not None and not lo <= gamma <= hi:
-        raise ConfigError(f"--camera-gamma: expected {lo:g} to {hi:g} (1: a linear camera), "
-                          f"got {gamma:g}")  # fmt: skip
+    if gamma not in (None, "auto"):
+        lo, hi = GAMMA_RANGE
+        try:
+            gamma = float(gamma)
+        except ValueError:
+            gamma = float("nan")
+        if not lo <= gamma <= hi:
+            raise ConfigError(f"--camera-gamma: expected 'auto' or {lo:g} to {hi:g} (1: a "
+                              f"linear camera), got {args.camera_gamma}")  # fmt: skip
     return PipelineConfig(stride=args.stride, flow=FlowParams(**flow), camera_gamma=gamma)
 
 

@@ -139,9 +139,10 @@ def describe_response(pipeline) -> str:
               "still lines": f"measured {pipeline.gamma_measured:.3f} on lines that stood "
                              f"still between the first frames (a wall)"}.get(pipeline.gamma_source)
     if source is None:
-        return ("camera response: taken as linear (the rig file gives no camera.gamma and no "
-                "lines stood still to measure it on): a webcam or an sRGB image reads every "
-                "depth long; `lightflow rig blur` measures it")
+        why = ("no lines stood still to measure it on" if not pipeline.gamma_source
+               else "the rig file gives no camera.gamma")
+        return (f"camera response: taken as linear ({why}): a webcam or an sRGB image reads "
+                f"every depth long; `lightflow rig blur` measures it")
     if gamma != 1.0:
         return f"camera response: gamma {gamma:g} ({source}): frames linearised"
     return f"camera response: linear ({source})"

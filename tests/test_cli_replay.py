@@ -213,7 +213,10 @@ def test_the_summary_says_which_camera_response_was_used():
 
     rig = resolve_rig("two-projector").scaled(0.25)
     line = describe_response(DepthPipeline(rig))
-    assert "taken as linear" in line and "lightflow rig blur" in line
+    assert "taken as linear (the rig file gives no camera.gamma)" in line
+    assert "lightflow rig blur" in line
+    pipe = DepthPipeline(rig, PipelineConfig(camera_gamma="auto"))
+    assert "taken as linear (no lines stood still" in describe_response(pipe)
     line = describe_response(DepthPipeline(rig.with_camera_gamma(1.0)))
     assert line == "camera response: linear (from the rig file)"
     line = describe_response(DepthPipeline(rig, PipelineConfig(camera_gamma=2.2)))

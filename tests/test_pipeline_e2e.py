@@ -439,8 +439,8 @@ def test_a_camera_with_gamma_is_linearised_by_its_rig():
 
 
 def test_a_webcam_fan_gets_its_gamma_from_the_wall_behind():
-    """No gamma in the rig: the pipeline measures it on the wall's still lines between the
-    first frames and linearises from the second frame on.
+    """No gamma in the rig, ``camera_gamma="auto"``: the pipeline measures it on the wall's
+    still lines between the first frames and linearises from the second frame on.
 
     Measured (frames 1-2 of 3, the fan at 1 ms before a wall, camera gamma 2.2): gamma
     2.16 from the wall; median 5.0 mm, signed +0.4 mm, none off the object; the same
@@ -471,7 +471,7 @@ def test_a_webcam_fan_gets_its_gamma_from_the_wall_behind():
               f"{100 * off / max(1, depth_px):.1f} %")  # fmt: skip
         return pipe, float(np.median(np.abs(e))), float(np.median(e)), off / max(1, depth_px)
 
-    pipe, median, signed, off = scores(PipelineConfig(stride=STRIDE))
+    pipe, median, signed, off = scores(PipelineConfig(stride=STRIDE, camera_gamma="auto"))
     assert pipe.gamma_source == "still lines" and pipe.camera_gamma == pytest.approx(2.2, abs=0.12)
     assert median <= 8.0 and abs(signed) <= 4.0 and off <= 0.02
     _, median_linear, signed_linear, _ = scores(PipelineConfig(stride=STRIDE, camera_gamma=1.0))

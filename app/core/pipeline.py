@@ -56,10 +56,13 @@ class PipelineConfig:
         Two projectors: where the sparse pattern's measured line interval
         disagrees with the one its dense partner and the rig predict (curved
         surfaces), use the prediction (:mod:`lightflow.app.core.intervals`).
-    camera_gamma : float, optional
+    camera_gamma : float or "auto", optional
         The camera's response, ``DN = full * (light / full) ** (1 / gamma)``;
         default: the rig's (``camera.gamma``; 1, linear, when it gives none).  Unless it
         is 1, every frame is linearised first (:mod:`lightflow.app.core.response`).
+        ``auto``: measured on the lines that stand still between the first frames (a
+        wall), when the rig gives none.  Not the default: on the demo's half-size wall
+        a linear camera measured 0.89 (its thin lines are too blurred to tell).
     """
 
     stride: int = 4
@@ -72,13 +75,13 @@ class PipelineConfig:
     # balls from 14-34 % to 28-48 % coverage, medians within 3 mm (0.08 added little more)
     max_depth_std: float = 0.05
     predict_intervals: bool = True
-    camera_gamma: float | None = None
+    camera_gamma: float | str | None = None
 
     def __post_init__(self):
         if self.stride not in (1, 2, 4):
             raise ConfigError(f"stride: expected 1, 2 or 4, got {self.stride}")
         lo, hi = rsp.GAMMA_RANGE
-        if self.camera_gamma is not None and not lo <= self.camera_gamma <= hi:
+        if self.camera_gamma not in (None, "auto") and not lo <= self.camera_gamma <= hi:
             raise ConfigError(f"camera_gamma: expected {lo:g} to {hi:g} (1: a linear camera), "
                               f"got {self.camera_gamma}")  # fmt: skip
         if not self.max_depth_std > 0:
@@ -171,10 +174,12 @@ class DepthPipeline:
         self._full_scale = 255.0
         #: the camera's response (1: linear), and the table that undoes it for the
         #: last frame's type
-        self.camera_gamma = cfg.camera_gamma or rig.camera.gamma or 1.0
-        #: where the response came from: "option", "rig", "still lines" or "" (taken as 1)
-        self.gamma_source = ("option" if cfg.camera_gamma is not None
-                             else "rig" if rig.camera.gamma is not None else "")  # fmt: skip
+        given = cfg.camera_gamma not in (None, "auto")
+        self.camera_gamma = (cfg.camera_gamma if given else rig.camera.gamma) or 1.0
+        #: where the response came from: "option", "rig", "still lines", "linear" (taken as
+        #: 1) or "" (``auto``: to be measured on still lines, 1 until then)
+        self.gamma_source = ("option" if given else "rig" if rig.camera.gamma is not None
+                             else "" if cfg.camera_gamma == "auto" else "linear")  # fmt: skip
         #: the measurement on still lines before it was rounded to 1 (NaN: none)
         self.gamma_measured = float("nan")
         self._linear_table: tuple | None = None
