@@ -24,7 +24,7 @@ import numpy as np
 
 from lightflow.app.core.errors import CalibrationError
 from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
-from lightflow.app.core.profile_model import static_blur, static_width_excess
+from lightflow.app.core.profile_model import static_blur
 from lightflow.app.core.response import MIN_STILL_LINES, find_gamma
 from lightflow.app.core.rig import Rig
 
@@ -82,11 +82,7 @@ def measure_response(rig: Rig, frames: Iterable, stride: int = 4) -> CameraRespo
     pipeline = DepthPipeline(rig, PipelineConfig(stride=stride))
 
     def excess(log_gamma: float):
-        pipeline.camera_gamma = float(np.exp(log_gamma))
-        samples = np.concatenate(
-            [pipeline.flow_model.line_samples(pipeline.band_grids(f)) for f in frames], axis=2)
-        m, r, line = (samples[:, c].ravel() for c in range(3))
-        return static_width_excess(m, r, line, min_bands=MIN_STILL_LINES)
+        return pipeline.still_line_excess(float(np.exp(log_gamma)), frames)
 
     at_linear = excess(0.0)
     found = find_gamma(excess, MIN_STILL_LINES)

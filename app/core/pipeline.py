@@ -474,13 +474,9 @@ class DepthPipeline:
         # the candidates' bands go to their own scratch: this frame's stay in the pipeline's
         scratch = tuple(np.empty_like(b) for b in self._buffers)
 
-        def excess(log_gamma: float):
-            self.camera_gamma = float(np.exp(log_gamma))
-            samples = self.flow_model.line_samples(self._measure(frame, {}, scratch)[2])
-            m, r, line = (samples[:, c][keep] for c in range(3))
-            return static_width_excess(m, r, line, min_bands=rsp.MIN_STILL_LINES)
-
-        found = rsp.find_gamma(excess, rsp.MIN_STILL_LINES)
+        found = rsp.find_gamma(
+            lambda lg: self.still_line_excess(float(np.exp(lg)), [frame], keep, scratch),
+            rsp.MIN_STILL_LINES)  # fmt: skip
         self.camera_gamma = 1.0
         if found is None:
             return None
@@ -491,6 +487,27 @@ class DepthPipeline:
             return None
         self.flow_model.replace_previous(self._measure(prev[0], {}, scratch)[2])
         return self._measure(frame, timings)
+
+    def still_line_excess(self, gamma: float, frames, keep=None, buffers=None):
+        """How much wider the static lines of ``frames`` read, linearised with ``gamma``.
+
+        Sets :attr:`camera_gamma` to ``gamma`` and measures the frames' bands
+        (into ``buffers``, default the pipeline's scratch); then
+        :func:`~lightflow.app.core.profile_model.static_width_excess` over their
+        static lines, or only over the grid cells ``keep`` (``(2, h * w)`` bool).
+
+        Returns
+        -------
+        (float, int) or None
+            The median excess width (camera px) and the lines it is over.
+        """
+        self.camera_gamma = gamma
+        samples = np.concatenate(
+            [self.flow_model.line_samples(self._measure(f, {}, buffers)[2]) for f in frames],
+            axis=2)  # fmt: skip
+        m, r, line = (samples[:, c] if keep is None else samples[:, c][keep] for c in range(3))
+        return static_width_excess(m.ravel(), r.ravel(), line.ravel(),
+                                   min_bands=rsp.MIN_STILL_LINES)  # fmt: skip
 
     def _linearise(self, image: np.ndarray) -> np.ndarray:
         """``image`` in linear values (and the full scale set to theirs), unless the camera is."""
