@@ -202,7 +202,7 @@ def fill_print(
     return out.reshape(image.shape)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _erode_rows(dilated, rows, r, out, i0, i1):
     """``out[i]``: the minimum of ``dilated`` over rows ``rows[i] - r .. rows[i] + r``
     (clipped to the image, as OpenCV's erosion ignores what lies outside); ``i0 .. i1`` only.
@@ -218,7 +218,7 @@ def _erode_rows(dilated, rows, r, out, i0, i1):
                 o[j] = min(o[j], src[j])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _walk_left(x, j, level):
     # from j (x[j] >= level) left to the last sample at or above level
     while j > 0 and x[j - 1] >= level:
@@ -226,7 +226,7 @@ def _walk_left(x, j, level):
     return j
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _walk_right(x, j, level):
     n = x.shape[0]
     while j < n - 1 and x[j + 1] >= level:
@@ -234,7 +234,7 @@ def _walk_right(x, j, level):
     return j
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _at_left(x, j, level):
     # the crossing below a walk's end j, linearly interpolated
     if j == 0:
@@ -246,7 +246,7 @@ def _at_left(x, j, level):
     return (j - 1) + (level - a) / (b - a)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _at_right(x, j, level):
     n = x.shape[0]
     if j == n - 1:
@@ -258,7 +258,7 @@ def _at_right(x, j, level):
     return j + (a - level) / (a - b)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def sliding_mid(x, win, out):
     """``out[0]``: (max + min) / 2, ``out[1]``: min, over a centred window of about ``win``.
 
@@ -304,7 +304,7 @@ def sliding_mid(x, win, out):
             out[1, j] = mn
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _row_signals(img, y0, y1, weights, out):
     """Average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``.
 
@@ -353,7 +353,7 @@ def _row_signals(img, y0, y1, weights, out):
                 out[p, j] *= inv
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _gap_level(x, g0, g1):
     """Background of a gap (mean of its middle half) and how V-shaped that middle is.
 
@@ -385,13 +385,13 @@ def _gap_level(x, g0, g1):
 ERF_20_50 = 0.8416
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _erfc_integral(u):
     """An antiderivative of ``erfc``: ``u erfc(u) - exp(-u^2) / sqrt(pi)``."""
     return u * math.erfc(u) - math.exp(-u * u) / math.sqrt(math.pi)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _edge_sum(h, e, sigma, lo, hi, sign):
     """Sum over the samples ``lo + 0.5 .. hi - 0.5`` of an erf edge of height ``h`` at
     ``e`` (half height), falling away from it on the side ``sign`` (+1: right).
@@ -409,7 +409,7 @@ def _edge_sum(h, e, sigma, lo, hi, sign):
     return integral - slope * (math.exp(-u_hi * u_hi) - math.exp(-u_lo * u_lo)) / 24.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _tails(g0, g1, edges, left, right):
     """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
     of band ``left``'s right edge and band ``right``'s left edge.
@@ -432,7 +432,7 @@ def _tails(g0, g1, edges, left, right):
     return total / (hi - lo)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast, sym_tol, out):
     """Measure band ``k`` (samples ``a..b`` above the mid-level) of row ``x`` into ``out[k]``.
 
@@ -539,7 +539,7 @@ def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast,
     out[k, F_VALID] = code
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _gap(seg_a, seg_b, ns, n, g):
     """First and last sample of gap ``g`` (left of segment ``g``; the outer two reach
     24 samples past the outermost segments)."""
@@ -548,7 +548,7 @@ def _gap(seg_a, seg_b, ns, n, g):
     return g0, g1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
     n = x.shape[0]
@@ -727,7 +727,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     return ns
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _side_interval(out, ns, k, k1, k2, itol):
     """Band ``k``'s interval from two neighbours on one side (``k1`` next, ``k2`` beyond).
 
@@ -750,7 +750,7 @@ def _side_interval(out, ns, k, k1, k2, itol):
     return interval
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _slant_row(bands, counts, row_y, i, o):
     """Slant (columns per row) of each band of row ``i`` from its partner in row ``o``.
 
@@ -782,7 +782,7 @@ def _slant_row(bands, counts, row_y, i, o):
             bands[i, k, F_SLANT] = best / dy
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def band_slants(bands, counts, row_y):
     """Slants of every band, each row paired with the measured row above (below for the first).
 
@@ -823,7 +823,7 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
              bands, counts, group)  # fmt: skip
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, group, g0, g1):
     """:func:`detect_bands` on the row groups ``g0 .. g1``."""
     w = img.shape[1]
@@ -853,7 +853,7 @@ def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
              out)  # fmt: skip
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, c0, c1):
     """:func:`rasterise_cells` on the rows of cells ``c0 .. c1``."""
     nf = fields.shape[0]
@@ -879,7 +879,7 @@ def _rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, c0, c1):
                 out[f, i, j] = acc[f, j] / n[j] if n[j] else np.nan
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def pack_bands(bands, counts, row_y, rows, starts, ends, valid):
     """Copy the measured bands (those with an extent) into flat arrays; returns the count."""
     m = 0
@@ -895,7 +895,7 @@ def pack_bands(bands, counts, row_y, rows, starts, ends, valid):
     return m
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _extend_runs(maps, i, gw, stride, reach, interval_field):
     """Extrapolate each run of a grid row linearly past its ends.
 
@@ -934,7 +934,7 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
         j = b + 1 + int(reach * maps[interval_field, i, b] / stride) + 1
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     """Interpolate the band fields of measured row ``r`` onto the grid columns.
 
@@ -977,7 +977,7 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     _extend_runs(maps, i, gw, stride, reach, 1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
     """Per source band on the given rows: target contrast across it / its height."""
     w = img.shape[1]

@@ -56,7 +56,7 @@ CAUSE_NAMES = tuple(name for name, _ in CAUSES)
 
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _band_code_cause(code):
     if code == BAND_FAINT:
         return FAINT
@@ -90,7 +90,7 @@ def band_causes(bands, counts, k, stride, gw, reach, out):
     run_rows(_band_causes, out.shape[0], bands, counts, k, stride, gw, reach, out)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
     """:func:`band_causes` on the grid rows ``i0 .. i1``."""
     off = 0.5 * (stride - 1)
@@ -111,7 +111,7 @@ def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
                 out[i, j] = _band_code_cause(bands[r, q, F_VALID])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _distance(band, x):
     ramp = band[F_RAMP] if band[F_RAMP] > 0 else 0.0
     a = band[F_START] - 2.0 * ramp

@@ -168,7 +168,7 @@ BLUR_REL_ERROR = 0.1
 CALIBRATED_BLUR_REL_ERROR = 0.05
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
@@ -291,7 +291,7 @@ N_STACK = 6
 N_STACK_SINGLE = 7
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
     """Fill the channels of ``stack`` (0 where the sweeps or the interval ratio are invalid).
 
@@ -329,7 +329,7 @@ def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
                     stack[i, j, 6] = 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _decide(
     sweeps, blurred, moving_at, pitch, interval_ratio, single, still_depth, outlier, share,
     sens, grids, cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, i0, i1,

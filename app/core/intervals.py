@@ -212,7 +212,7 @@ def _local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
                 / cv2.GaussianBlur(weights, (0, 0), SMOOTH_CELLS))  # fmt: skip
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _at(tab, p, k, f, r0, fr, c0, fc):
     """Table ``tab[p]`` at depth index ``k + f`` and coarse position ``(r0 + fr, c0 + fc)``."""
     acc = 0.0
@@ -225,7 +225,7 @@ def _at(tab, p, k, f, r0, fr, c0, fc):
     return acc
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
     """The sparse pattern ``s``'s ``du/dx`` predicted from the dense ``d``'s interval
     ``b_dense`` at depth index ``t``; 0 where there is no prediction."""
@@ -249,7 +249,7 @@ def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
     return du_s
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, denser, depth_tol,
                   tol, out, have, i0, i1):  # fmt: skip
     """``out[s]``: log(measured / predicted) interval of the sparse pattern ``s`` of each
