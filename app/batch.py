@@ -43,6 +43,7 @@ import numpy as np
 from lightflow.app.core.errors import ConfigError, FrameError, LightflowError
 from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
 from lightflow.app.core.rig import Rig
+from lightflow.app.memory import keep_freed_memory
 from lightflow.app.recording import load_frame, read_recording
 
 #: bump when the outputs of a chunk change meaning (invalidates resumable state)
@@ -103,6 +104,7 @@ def worker_pipeline(rig: Rig, config: PipelineConfig) -> DepthPipeline:
 
     numba.set_num_threads(1)
     cv2.setNumThreads(1)
+    keep_freed_memory()
     # the LUT depends on the rig, the stride and the depth range only
     key = (rig.digest(), f"{config.stride} {config.depth_range!r}")
     with _WORKER_LOCK:

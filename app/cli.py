@@ -13,6 +13,7 @@ import sys
 
 from lightflow.app import commands
 from lightflow.app.core.errors import LightflowError
+from lightflow.app.memory import keep_freed_memory
 
 DESCRIPTION = """\
 Depth of fast-moving objects from the motion blur of projected line patterns
@@ -34,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    keep_freed_memory()  # frame-sized buffers are reused, not faulted in again each frame
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
