@@ -19,7 +19,7 @@ from .errors import ConfigError, FrameError
 from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
 from .intervals import IntervalModel
 from .profile_model import static_width_excess
-from .results import BandSet, FrameResult, upsample_grid
+from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 
 MAX_BANDS_PER_ROW = 160
@@ -378,7 +378,6 @@ class DepthPipeline:
         timings["smooth"] = (t4 - t3) * 1e3
         depth_grid = lookup_depth(self.lut, log_ratio)
         std_grid[~np.isfinite(depth_grid)] = np.nan
-        depth = upsample_grid(depth_grid, cfg.stride, self._full_size)
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
@@ -391,7 +390,9 @@ class DepthPipeline:
         ]
         return FrameResult(
             frame=frame,
-            depth=depth,
+            depth_map=None,
+            depth_grid=depth_grid,
+            full_size=self._full_size,
             flows_grid=fm.flows,
             log_ratio_grid=log_ratio,
             bands=result_bands,

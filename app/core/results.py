@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from functools import cached_property
 
 import cv2
@@ -47,6 +47,8 @@ class FrameResult:
         The input frame (its image is the RGB camera image).
     depth : numpy.ndarray
         ``(H, W)`` float32 depth z in metres (camera frame), NaN without estimate.
+        Either given, or upsampled from ``depth_grid`` on first use: the sinks that
+        show or write it pay for it, on their own threads, not the pipeline.
     flows_grid : list of numpy.ndarray
         Per pattern, the light flow in projector pixels, NaN where invalid.
     log_ratio_grid : numpy.ndarray
@@ -77,10 +79,14 @@ class FrameResult:
         ``(2, h, w)``: per pattern, the measured line interval (camera px) on the
         grid, NaN without bands; with ``flows_grid`` it splits a flow's error into
         its band length and its interval (``lightflow eval --stages``).
+    depth_grid : numpy.ndarray or None
+        Depth on the analysis grid, when ``depth`` is not given.
+    full_size : tuple of int or None
+        ``(W, H)`` of the camera image, with ``depth_grid``.
     """
 
     frame: Frame
-    depth: np.ndarray
+    depth_map: InitVar[np.ndarray | None]
     flows_grid: list[np.ndarray]
     log_ratio_grid: np.ndarray
     bands: list[BandSet]
@@ -93,6 +99,19 @@ class FrameResult:
     leak_known: bool = True
     warnings: list[str] = field(default_factory=list)
     intervals_grid: np.ndarray | None = None
+    depth_grid: np.ndarray | None = None
+    full_size: tuple[int, int] | None = None
+
+    def __post_init__(self, depth_map: np.ndarray | None) -> None:
+        if depth_map is None and (self.depth_grid is None or self.full_size is None):
+            raise ValueError("FrameResult needs a depth map, or depth_grid and full_size")
+        if depth_map is not None:
+            self.__dict__["depth"] = depth_map  # what cached_property reads first
+
+    @cached_property
+    def depth(self) -> np.ndarray:
+        """``(H, W)`` float32 depth in metres, NaN without estimate (see the class)."""
+        return upsample_grid(self.depth_grid, self.stride, self.full_size)
 
     @cached_property
     def depth_std(self) -> np.ndarray | None:
