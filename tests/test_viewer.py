@@ -46,7 +46,11 @@ def disc_result(rig, index: int) -> FrameResult:
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     cx = w / 2 + 8 * index
     disc = (xx - cx) ** 2 + (yy - h / 2) ** 2 < (0.3 * h) ** 2
-    depth = np.where(disc, 0.7 + 0.3 * (xx - cx) / w, np.nan).astype(np.float32)
+    # the depth on the analysis grid (cell centres), upsampled by the result as the
+    # pipeline's is
+    gy, gx = yy[1::4, 1::4] + 0.5, xx[1::4, 1::4] + 0.5
+    on_grid = (gx - cx) ** 2 + (gy - h / 2) ** 2 < (0.3 * h) ** 2
+    depth_grid = np.where(on_grid, 0.7 + 0.3 * (gx - cx) / w, np.nan).astype(np.float32)
     image = np.full((h, w, 3), 50, np.uint8)
     image[disc] = (190, 150, 120)
     rows = np.arange(4, h, 6, dtype=np.float32)
@@ -60,7 +64,7 @@ def disc_result(rig, index: int) -> FrameResult:
     causes_grid = np.where(disc[2::4, 2::4], DEPTH, STATIC).astype(np.uint8)
     causes_grid[:, -causes_grid.shape[1] // 5:] = NO_LINES
     return FrameResult(
-        Frame(index, 1.0 + index / 30, 0.02, image), depth, [grid, grid * 0.5],
+        Frame(index, 1.0 + index / 30, 0.02, image), None, [grid, grid * 0.5],
         np.log(grid / (grid * 0.5)), bands, 4,
         timings_ms={"total": 30_000.0 if index == 0 else 40.0 + index},
         coverage=float(disc.mean()),
@@ -68,6 +72,8 @@ def disc_result(rig, index: int) -> FrameResult:
                                 np.nan)[2::4, 2::4].astype(np.float32),
         causes_grid=causes_grid,
         cause_counts=count_causes(causes_grid),
+        depth_grid=depth_grid,
+        full_size=(w, h),
     )  # fmt: skip
 
 

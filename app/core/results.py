@@ -145,7 +145,8 @@ def upsample_grid(grid: np.ndarray, stride: int, size: tuple[int, int]) -> np.nd
     Parameters
     ----------
     grid : numpy.ndarray
-        ``(h, w)`` map with one sample at the centre of each ``stride`` x ``stride`` cell.
+        ``(h, w)`` map with one sample at the centre of each ``stride`` x ``stride`` cell,
+        or ``(h, w, c)`` with up to 4 channels (a colour image of it).
     stride : int
     size : tuple of int
         ``(width, height)`` of the full-resolution image.
@@ -153,11 +154,11 @@ def upsample_grid(grid: np.ndarray, stride: int, size: tuple[int, int]) -> np.nd
     Returns
     -------
     numpy.ndarray
-        ``(height, width)`` map of ``grid``'s dtype.
+        ``(height, width)`` (or ``(height, width, c)``) map of ``grid``'s dtype.
     """
-    if stride == 1 and grid.shape == (size[1], size[0]):
+    if stride == 1 and grid.shape[:2] == (size[1], size[0]):
         return grid
-    gh, gw = grid.shape
+    gh, gw = grid.shape[:2]
     if (gw * stride, gh * stride) == tuple(size):
         # grid samples sit at cell centres, exactly where resize expects them
         return cv2.resize(grid, size, interpolation=cv2.INTER_LINEAR)
