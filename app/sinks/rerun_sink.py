@@ -604,7 +604,7 @@ class RerunSink:
             flow_range_px = (0.0, max(pitches) if pitches else 40.0)
         self.flow_range_px = (float(flow_range_px[0]), float(flow_range_px[1]))
         self.url = f"rerun+http://127.0.0.1:{port}/proxy"
-        self._rays = camera_rays(rig.camera).astype(np.float32)
+        self._rays: dict[int, np.ndarray] = {}  # per grid stride (1: every pixel)
         self._channels = [pat.channel for _, pat in rig.patterns]
         self._closed = False
         self._series_named: set[str] = set()
@@ -703,7 +703,13 @@ class RerunSink:
         # the viewer ignores the alpha channel of an image whose opacity is exactly 1
         rec.log("world/camera/depth_overlay",
                 rr.Image(overlay, color_model="RGBA", draw_order=1.0, opacity=0.99))
-        points, _ = depth_to_points(result.depth, self._rays, None, self.max_points)
+        # the points of the analysis grid: a sixteenth of the pixels, no fewer than
+        # max_points would keep, and the depth itself (no interpolated values)
+        if result.depth_grid is not None:
+            points, _ = depth_to_points(result.depth_grid, self._rays_at(result.stride), None,
+                                        self.max_points)  # fmt: skip
+        else:
+            points, _ = depth_to_points(result.depth, self._rays_at(1), None, self.max_points)
         rec.log("world/points", rr.Points3D(
             # a few screen points wide whatever the zoom: sparse depth stays visible
             points, colors=turbo_rgb(points[:, 2], *self.depth_range_m),
@@ -712,6 +718,12 @@ class RerunSink:
         self._log_stats(result, stats)
         self.frames_logged += 1
         self.output.pump()
+
+    def _rays_at(self, stride: int) -> np.ndarray:
+        """Camera rays (z = 1) through the centres of the ``stride`` x ``stride`` cells."""
+        if stride not in self._rays:
+            self._rays[stride] = camera_rays(self.rig.camera, stride).astype(np.float32)
+        return self._rays[stride]
 
     def _log_stats(self, result: FrameResult, stats: RunStats) -> None:
         rec = self.rec
