@@ -41,12 +41,16 @@ from .errors import ConfigError
 from .threads import run_rows
 
 #: band fields in the per-row output
-F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT = range(9)
-N_FIELDS = 9
+(F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT,
+ F_FLOOR) = range(10)  # fmt: skip
+N_FIELDS = 10
 #: fields interpolated onto the grid by :func:`rasterise_cells`
 GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP, F_SLANT)
 #: ``F_VALID`` of a band: 1 for a valid band, else why it was rejected (:mod:`.causes`)
 BAND_VALID = 1.0
+#: valid, its sweep measured on the periodic profile of a run of overlapping bands
+#: (:func:`lightflow.app.core.overlap.measure_runs`), not on the band alone
+BAND_PERIODIC = 2.0
 BAND_FAINT = -1.0  # too little contrast, or no clean half-height crossings
 BAND_CUT = -2.0  # one sharp side (an object edge) or running into the image border
 BAND_OVERLAP = -3.0  # no clean gap to a neighbour: bands merge
@@ -359,6 +363,28 @@ def _row_signals(img, y0, y1, weights, out):
         for p in range(n_p):
             for j in range(w):
                 out[p, j] *= inv
+
+
+def row_signals(img: np.ndarray, y: int, weights: np.ndarray) -> np.ndarray:
+    """The unmixed signal of image row ``y``, per pattern, as the detector reads it.
+
+    Parameters
+    ----------
+    img : numpy.ndarray
+        ``(H, W, 3)`` image.
+    y : int
+        Image row.
+    weights : numpy.ndarray
+        ``(P, 3)`` unmixing weights.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(P, W)`` float64.
+    """
+    out = np.empty((weights.shape[0], img.shape[1]))
+    _row_signals(img, y, y, weights, out)
+    return out
 
 
 @nb.njit(cache=True)
@@ -722,6 +748,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         floor[g] = lo_f
     # intervals from neighbour centres; consistency and gap checks
     for k in range(ns):
+        out[k, F_FLOOR] = min(floor[k], floor[k + 1])
         if out[k, F_VALID] > 0.0:
             # the level just outside the band's support on each side (its ramps run
             # ramp / 0.6 from half height to the floor), at most to the gap's middle
