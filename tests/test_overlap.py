@@ -11,6 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lightflow.app.core.bands import (
+    BAND_PERIODIC,
+    F_LENGTH,
+    F_VALID,
+    N_FIELDS,
+    BandParams,
+    detect_bands,
+)
 from lightflow.app.core.overlap import (
     O_CODE,
     O_FRACTION,
@@ -22,6 +30,7 @@ from lightflow.app.core.overlap import (
     OV_MEASURED,
     OV_SHORT,
     OverlapParams,
+    measure_runs,
     measure_stretches,
     refine_interval,
 )
@@ -256,3 +265,54 @@ def test_a_changing_interval_is_followed_when_given():
     plain = measure_stretches(*args, bg=BG)
     print(f"chirp ignored: codes {plain[:, O_CODE]}")
     assert np.isnan(plain[:, O_SWEEP]).all()
+
+
+# ------------------------------------------------------------ runs of rejected bands
+
+RUN_SETS = [(20.0, 2.0, 0.7), (20.0, 5.0, 1.4), (30.0, 3.0, 1.0), (40.0, 7.0, 0.6),
+            (25.0, 3.0, 1.6), (16.0, 2.0, 0.8)]  # fmt: skip
+
+
+def detect_and_measure_runs(B, w, sigma, L, phase):
+    """One rendered row (30 px of background at both ends) through the band detector and
+    :func:`measure_runs`, with the blur and line width known: the first pattern's bands."""
+    c = 0.5 * (L + w) + 30.0 + phase + B * np.arange(14)
+    n = int(c[-1] + 0.5 * (L + w) + 30)
+    v = np.full(n, BG)
+    reach = int(0.5 * (L + w) + 6 * sigma + 3)
+    for ck in c:
+        for j in range(max(0, int(ck) - reach), min(n, int(ck) + reach + 2)):
+            v[j] += 80.0 * pixel_value(j - ck, L, w, sigma)
+    img = np.ascontiguousarray(np.repeat(np.repeat(v[None, :, None], 3, 0), 3, 2))
+    weights = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    b = BandParams()
+    params = np.array([b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px,
+                       b.min_gap_px, b.vertical_extra])  # fmt: skip
+    bands = np.empty((2, 1, 96, N_FIELDS))
+    counts = np.empty((2, 1), np.int64)
+    detect_bands(img, weights, np.array([1], np.int64), np.array([int(2 * B) | 1] * 2, np.int64),
+                 255.0, params, bands, counts)  # fmt: skip
+    measure_runs(img, weights, np.array([1]), bands, counts, np.array([w, w]),
+                 np.array([B, B]), np.array([[sigma * sigma, 0.0]] * 2),
+                 OverlapParams(max_rel_std=0.02))  # fmt: skip
+    return bands[0, 0, : counts[0, 0]]
+
+
+@pytest.mark.parametrize("B,w,sigma", RUN_SETS)
+def test_runs_of_overlapping_bands_give_the_sweep_or_stay_rejected(B, w, sigma):
+    """L from 0.5 to 2.5 intervals: bands are valid alone, or periodic within 0.5 % of L,
+    or rejected.  Only touching bands (L / B below 1, the gaps at the floor) are measured
+    as runs: past one interval the bands' widths (a fraction of the interval) and the floor
+    disagree on the integer part of L / B, and the run stays rejected."""
+    periodic = {True: 0, False: 0}
+    for u in np.arange(0.5, 2.55, 0.05):
+        L = u * B
+        for phase in (0.0, 0.3, 0.6):
+            b = detect_and_measure_runs(B, w, sigma, L, phase)
+            per = b[:, F_VALID] == BAND_PERIODIC
+            assert np.all(np.abs(b[per, F_LENGTH] / L - 1.0) <= 0.005), (u, phase)
+            if u > 1.0:
+                assert not np.any(b[:, F_VALID] > 0.0), (u, phase)
+            periodic[u < 1.0] += int(per.any())
+    print(f"\nB={B} w={w} sigma={sigma}: rows with periodic runs {periodic}")
+    assert periodic[True] >= 1

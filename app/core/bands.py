@@ -19,7 +19,10 @@ are upright in the image (see there why this leaves bands unchanged).
 
 Rejected (``valid`` false), so that no depth is ever invented from them:
 bands without a clean gap on both sides (overlapping bands, sweep close to the
-interval), asymmetric bands (cut by an object boundary or the panel edge),
+interval), bands whose gaps lie well above the floor a few intervals away (sweeps
+longer than the interval: the swept lines add up to narrow pulses on a raised floor,
+shaped like short bands; where no gap within :data:`FLOOR_GAPS` gaps shows the floor,
+they are not told apart), asymmetric bands (cut by an object boundary or the panel edge),
 bands whose neighbour intervals disagree (boundaries, missing lines), and
 faint bands.  Static lines are rejected later, where the line width in
 camera pixels is known (:mod:`lightflow.app.core.flow`).
@@ -38,16 +41,25 @@ from .errors import ConfigError
 from .threads import run_rows
 
 #: band fields in the per-row output
-F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT = range(9)
-N_FIELDS = 9
+(F_CENTRE, F_LENGTH, F_INTERVAL, F_START, F_END, F_HEIGHT, F_VALID, F_RAMP, F_SLANT,
+ F_FLOOR) = range(10)  # fmt: skip
+N_FIELDS = 10
 #: fields interpolated onto the grid by :func:`rasterise_cells`
 GRID_FIELDS = (F_LENGTH, F_INTERVAL, F_RAMP, F_SLANT)
 #: ``F_VALID`` of a band: 1 for a valid band, else why it was rejected (:mod:`.causes`)
 BAND_VALID = 1.0
+#: valid, its sweep measured on the periodic profile of a run of overlapping bands
+#: (:func:`lightflow.app.core.overlap.measure_runs`), not on the band alone
+BAND_PERIODIC = 2.0
 BAND_FAINT = -1.0  # too little contrast, or no clean half-height crossings
 BAND_CUT = -2.0  # one sharp side (an object edge) or running into the image border
 BAND_OVERLAP = -3.0  # no clean gap to a neighbour: bands merge
 BAND_IRREGULAR = -4.0  # dips inside (print, an edge), intervals or heights that disagree
+#: gaps on each side searched for the floor under the bands (:func:`bands_in_row`), and
+#: how far above it (a share of the band's height) both gaps of a band may lie: swept
+#: lines that overlap raise the gaps by at least the height of the pulses they leave
+FLOOR_GAPS = 8
+FLOOR_RAISE = 0.5
 
 
 @dataclass(frozen=True)
@@ -353,6 +365,28 @@ def _row_signals(img, y0, y1, weights, out):
                 out[p, j] *= inv
 
 
+def row_signals(img: np.ndarray, y: int, weights: np.ndarray) -> np.ndarray:
+    """The unmixed signal of image row ``y``, per pattern, as the detector reads it.
+
+    Parameters
+    ----------
+    img : numpy.ndarray
+        ``(H, W, 3)`` image.
+    y : int
+        Image row.
+    weights : numpy.ndarray
+        ``(P, 3)`` unmixing weights.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(P, W)`` float64.
+    """
+    out = np.empty((weights.shape[0], img.shape[1]))
+    _row_signals(img, y, y, weights, out)
+    return out
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _gap_level(x, g0, g1):
     """Background of a gap (mean of its middle half) and how V-shaped that middle is.
@@ -379,6 +413,49 @@ def _gap_level(x, g0, g1):
     for i in range(a + t, b - t + 1):
         inner += x[i]
     return level, outer / (2 * t) - inner / (b - t - (a + t) + 1)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _near_level(x, edge, bound):
+    """Mean of the three samples from ``edge`` outwards, none beyond sample ``bound``.
+
+    Outwards is to the left when ``bound`` lies left of ``edge``, else to the right.
+    """
+    n = x.shape[0]
+    total = 0.0
+    if bound <= edge:
+        j = int(math.floor(edge))
+        for d in range(3):
+            total += x[min(max(j - d, bound, 0), n - 1)]
+    else:
+        j = int(math.ceil(edge))
+        for d in range(3):
+            total += x[max(min(j + d, bound, n - 1), 0)]
+    return total / 3.0
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _gap_floor(x, g0, g1):
+    """Lowest mean of five neighbouring samples in gap ``g0..g1`` (its mean if shorter).
+
+    The darkest part of a gap: a gap can hold a step (the first of several swept lines
+    that overlap) whose middle-half mean (:func:`_gap_level`) lies above the floor;
+    five samples keep the noise's pull to the minimum small.
+    """
+    n = g1 - g0 + 1
+    if n <= 5:
+        total = 0.0
+        for i in range(g0, g1 + 1):
+            total += x[i]
+        return total / n
+    run = 0.0
+    for i in range(g0, g0 + 5):
+        run += x[i]
+    best = run
+    for i in range(g0 + 5, g1 + 1):
+        run += x[i] - x[i - 5]
+        best = min(best, run)
+    return best / 5.0
 
 
 #: the 50 % to 20 % distance of an erf edge, in units of its sigma
@@ -581,6 +658,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     gaps = np.empty((2, ns + 1))
     gap_lv = gaps[0]
     gap_dp = gaps[1]
+    gap_lv[:] = np.inf  # gaps next to no measured band stay unmeasured
     gap_done = np.zeros(ns + 1, np.bool_)
     for k in range(ns):
         for f in range(N_FIELDS):
@@ -617,6 +695,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     # the raise times the line width: 1-2 % of a sweep of two thirds of the interval).
     # Subtract the tails, modelled as an erf edge with each band's own ramp, and measure
     # again.  Isolated bands are untouched.
+    tails = np.zeros(ns + 1)
     if ns > 1:
         edges = np.empty((ns, 4))  # height, left and right half-height points, edge sigma
         for k in range(ns):
@@ -625,7 +704,6 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             edges[k, 2] = out[k, F_END]
             edges[k, 3] = out[k, F_RAMP] / ERF_20_50
         # each gap serves two bands: its tails once (gap k lies left of band k)
-        tails = np.zeros(ns + 1)
         for g in range(ns + 1):
             if not ((g > 0 and edges[g - 1, 0] > 0.0) or (g < ns and edges[g, 0] > 0.0)):
                 continue
@@ -646,8 +724,45 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             _measure_band(x, thr, k, a, b, gap_lv[k] - tl, gap_lv[k + 1] - tr, gap_dp[k],
                           gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), tl, tr,
                           min_contrast, sym_tol, out)  # fmt: skip
+    # Bands swept further than their interval add up to a periodic profile on a raised
+    # floor: narrow pulses where n + 1 swept lines cover a point, n elsewhere.  Their
+    # shape is that of short bands with clean gaps; only the floor tells them apart.
+    # Light only adds, so the lowest gap within FLOOR_GAPS gaps bounds the floor there;
+    # a band whose gaps on both sides lie well above it rides on other bands.
+    low = np.empty(ns + 1)
+    # the outer gaps reach as far as the inner ones do (their levels stop at 24 samples)
+    spacing = (seg_a[ns - 1] - seg_a[0]) / (ns - 1) if ns > 1 else 24.0
+    far = int(FLOOR_GAPS * spacing)
+    for g in range(ns + 1):
+        g0, g1 = _gap(seg_a, seg_b, ns, n, g)
+        if g == 0:
+            g0 = max(0, seg_a[0] - far)
+        if g == ns:
+            g1 = min(n - 1, seg_b[ns - 1] + far)
+        low[g] = _gap_floor(x, g0, g1) if g1 >= g0 else np.inf
+    floor = np.empty(ns + 1)
+    for g in range(ns + 1):
+        lo_f = np.inf
+        for q in range(max(0, g - FLOOR_GAPS), min(ns, g + FLOOR_GAPS) + 1):
+            lo_f = min(lo_f, low[q])
+        floor[g] = lo_f
     # intervals from neighbour centres; consistency and gap checks
     for k in range(ns):
+        out[k, F_FLOOR] = min(floor[k], floor[k + 1])
+        if out[k, F_VALID] > 0.0:
+            # the level just outside the band's support on each side (its ramps run
+            # ramp / 0.6 from half height to the floor), at most to the gap's middle
+            # (narrow gaps): not the gap's middle itself, since the first band of an
+            # overlapping run can hold the step up from the floor in its own segment
+            reach = out[k, F_RAMP] / 0.6 + 1.0
+            gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
+            gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
+            near_l = _near_level(x, out[k, F_START] - reach, (gl0 + gl1) // 2)
+            near_r = _near_level(x, out[k, F_END] + reach, (gr0 + gr1 + 1) // 2)
+            near_l -= tails[k] + floor[k]
+            near_r -= tails[k + 1] + floor[k + 1]
+            if min(near_l, near_r) > FLOOR_RAISE * out[k, F_HEIGHT]:
+                out[k, F_VALID] = BAND_OVERLAP
         ramp = out[k, F_INTERVAL]
         out[k, F_INTERVAL] = np.nan
         c0 = out[k, F_CENTRE]

@@ -172,8 +172,8 @@ CALIBRATED_BLUR_REL_ERROR = 0.05
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, blur_known, blur_rel_error, still_depth, sweeps, moving_at, pitch,
-    interval_ratio, banded, sens, why, i0, i1,
+    static_factor, static_margin, blur_known, blur_rel_error, still_depth, periodic, sweeps,
+    moving_at, pitch, interval_ratio, banded, sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
@@ -186,8 +186,10 @@ def _sweeps(
     With ``still_depth`` (single projector), ``interval_ratio`` is kept on every
     cell whose intervals the patterns can make, moving or not.
     Cells whose sweep is hidden in the line width (below ``lo_factor * line +
-    lo_margin``) or whose bands fill the interval get NaN.  Grid rows ``i0 .. i1``
-    only (the kernels of this module run bands of rows on a thread per core).
+    lo_margin``) or whose bands fill the interval get NaN, unless ``periodic[p]`` marks
+    the cell's sweep as measured on the periodic profile of overlapping bands.  Grid
+    rows ``i0 .. i1`` only (the kernels of this module run bands of rows on a thread per
+    core).
     """
     gw = interval_ratio.shape[1]
     nu = u_of.shape[0]
@@ -266,7 +268,7 @@ def _sweeps(
                 if not (L > lo_factor * line + lo_margin):
                     why[i, j] = cz.STATIC  # no measurable sweep: a (nearly) static line
                     break
-                if L + line + 1.0 * sigma > B:
+                if L + line + 1.0 * sigma > B and not periodic[p, i, j]:
                     why[i, j] = cz.OVERLAP  # swept line and its blur fill the interval
                     break
                 sens[p, i, j] = spread / B
@@ -499,7 +501,8 @@ class FlowModel:
         return (not self._fitted or frame in BLUR_EARLY_REFITS
                 or frame % params.blur_refit_frames == 0)  # fmt: skip
 
-    def combine(self, grids: np.ndarray, params: FlowParams) -> FlowMaps:
+    def combine(self, grids: np.ndarray, params: FlowParams,
+                periodic: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
         """Per-pixel raw log ratio, the two flows in projector pixels, and their errors.
 
         Parameters
@@ -509,6 +512,10 @@ class FlowModel:
             half height ``m``, the line interval ``B``, the 50->20 % ramp ``r`` and the
             slant of the lines (columns per row).
         params : FlowParams
+        periodic : numpy.ndarray, optional
+            ``(2, h, w)`` bool: cells whose sweep was measured on the periodic profile of
+            overlapping bands (:func:`lightflow.app.core.overlap.measure_runs`); they
+            may fill the interval.
 
         Returns
         -------
@@ -526,10 +533,10 @@ class FlowModel:
         elif self.calibrated and f == 0:
             self._show_blur(self.magnifications(grids))
         self.frames += 1
-        return self.recombine(grids, params)
+        return self.recombine(grids, params, periodic)
 
     def reread(self, first: FlowMaps, grids: np.ndarray, fix: np.ndarray,
-               params: FlowParams) -> FlowMaps:
+               params: FlowParams, periodic: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
         """The flows of ``first`` read again with the line intervals corrected by ``fix``.
 
         ``fix`` is per pattern ``log(B_measured / B_predicted)`` (:mod:`.intervals`).
@@ -541,11 +548,11 @@ class FlowModel:
         intervals.  Which cells move, and their expected error, stay those of
         ``first`` (the correction is smooth, not noise of the sweeps); where a sweep
         read again is no longer measurable, the first reading stands, its ``L / B``
-        over the predicted interval.
+        over the predicted interval.  ``periodic``: as for :meth:`combine`.
         """
         fixed = grids.copy()
         fixed[:, 1] *= np.exp(-fix)
-        second = self.recombine(fixed, params)
+        second = self.recombine(fixed, params, periodic)
         again = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
         log_ratio = np.where(again, second.log_ratio, first.log_ratio + fix[0] - fix[1])
         flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
@@ -553,11 +560,14 @@ class FlowModel:
         return FlowMaps(log_ratio.astype(np.float32), flows, first.blur_px, first.lr_var,
                         first.lr_sys, first.why)  # fmt: skip
 
-    def recombine(self, grids: np.ndarray, params: FlowParams) -> FlowMaps:
+    def recombine(self, grids: np.ndarray, params: FlowParams,
+                  periodic: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
         """:meth:`combine` without touching the blur model (for :meth:`reread`)."""
         tab = tables()
         still = self.still_depth(params)
         gh, gw = grids.shape[2:]
+        if periodic is None:
+            periodic = np.zeros((2, gh, gw), np.bool_)
         sweeps = np.empty((2, gh, gw), np.float32)
         moving_at = np.empty((2, gh, gw), np.float32)
         pitch = np.ones((2, gh, gw), np.float32)
@@ -575,7 +585,7 @@ class FlowModel:
             params.measure_factor, params.measure_margin_px,
             params.calibrated_static_factor if measured else params.static_factor,
             params.calibrated_static_margin_px if measured else params.static_margin_px,
-            self._fitted, self.blur_rel_error, still, sweeps, moving_at,
+            self._fitted, self.blur_rel_error, still, periodic, sweeps, moving_at,
             pitch,
             interval_ratio, banded, sens, why,
         )  # fmt: skip

@@ -67,6 +67,16 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from .bands import (
+    BAND_OVERLAP,
+    BAND_PERIODIC,
+    F_CENTRE,
+    F_FLOOR,
+    F_INTERVAL,
+    F_LENGTH,
+    F_VALID,
+    row_signals,
+)
 from .threads import run_rows
 
 #: output fields of :func:`measure_stretch` / :func:`measure_stretches`
@@ -130,14 +140,14 @@ class OverlapParams:
                          self.bg_std, self.prior_std], dtype=np.float64)  # fmt: skip
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _sinc(x):
     if abs(x) < 1e-12:
         return 1.0
     return math.sin(math.pi * x) / (math.pi * x)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def chirp_position(t, tc, g):
     """Position at which lines ``B (1 + g (t - tc))`` apart are ``B`` apart.
 
@@ -149,7 +159,7 @@ def chirp_position(t, tc, g):
     return tc + math.log1p(g * (t - tc)) / g
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _cholesky_solve(G, rhs, sol, dinv):
     """Solve ``G sol = rhs`` (G symmetric positive definite, overwritten by its factor).
 
@@ -200,7 +210,7 @@ def _cholesky_solve(G, rhs, sol, dinv):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
 
@@ -294,13 +304,13 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     return math.sqrt(rss / max(N - P, 1))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def transfer(m, B, w, sigma):
     """``K_m``: the line box, the pixel box and the blur at harmonic ``m / B``."""
     return _sinc(m * w / B) * _sinc(m / B) * math.exp(-2.0 * (math.pi * sigma * m / B) ** 2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _inv3(a):
     """Inverse of a symmetric 3x3 matrix by cofactors (NaN when singular)."""
     inv = np.empty((3, 3))
@@ -318,7 +328,7 @@ def _inv3(a):
     return inv / det
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _pulse_fit(coef, M, B, K, hfx):
     """Gauss-Newton fit of ``(h, f, x0)`` to the harmonics; returns (JtJ^-1 diag, misfit).
 
@@ -383,7 +393,7 @@ def _pulse_fit(coef, M, B, K, hfx):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out):
     """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
 
@@ -537,7 +547,7 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, ou
     out[O_CODE] = OV_MEASURED
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _measure_all(rows, row, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out, k0, k1):
     for k in range(k0, k1):
         measure_stretch(rows[row[k]], lo[k], hi[k], B[k], chirp[k], w[k], sigma[k], bg[k],
@@ -586,7 +596,7 @@ def measure_stretches(
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _residual_at(x, lo, hi, B, M):
     coef = np.zeros(2 * M + 1)
     var_c = np.zeros(M + 1)
@@ -621,3 +631,157 @@ def refine_interval(x, lo: int, hi: int, B0: float, rel_range: float = 0.1,
             d = a + g * (b - a)
             fd = _residual_at(x, lo, hi, d, M)
     return 0.5 * (a + b)
+
+
+# ---------------------------------------------------------------- runs of rejected bands
+
+#: fewest neighbouring overlap-rejected bands of a row measured as one periodic stretch
+#: (the stretch spans one interval more than their centres: three bands, three intervals)
+MIN_RUN_BANDS = 3
+#: largest deviation of a run's centre spacings from their median (share of it): the
+#: pulses of overlapping bands are exactly periodic on a smooth surface
+RUN_SPACING_TOLERANCE = 0.1
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _find_runs(bands, counts, min_bands, runs):
+    """Runs of at least ``min_bands`` neighbouring overlap-rejected bands with centres.
+
+    ``runs[m] = (row, first band, last band)``; returns the number of runs.
+    """
+    m = 0
+    for r in range(counts.shape[0]):
+        n = counts[r]
+        k = 0
+        while k < n:
+            if bands[r, k, F_VALID] != BAND_OVERLAP or not np.isfinite(bands[r, k, F_CENTRE]):
+                k += 1
+                continue
+            j = k
+            while (j + 1 < n and bands[r, j + 1, F_VALID] == BAND_OVERLAP
+                   and np.isfinite(bands[r, j + 1, F_CENTRE])):  # fmt: skip
+                j += 1
+            if j - k + 1 >= min_bands and m < runs.shape[0]:
+                runs[m, 0] = r
+                runs[m, 1] = k
+                runs[m, 2] = j
+                m += 1
+            k = j + 1
+    return m
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _prepare_runs(bands, runs, m, tol, width, out):
+    """Per run of one pattern: ``out[q] = (B, lo, hi, floor, width over B)``, or NaN ``B``
+    when its centre spacings disagree (more than ``tol`` of their median) with each other."""
+    for q in range(m):
+        r, k0, k1 = runs[q, 0], runs[q, 1], runs[q, 2]
+        n = k1 - k0
+        d = np.empty(n)
+        for i in range(n):
+            d[i] = bands[r, k0 + i + 1, F_CENTRE] - bands[r, k0 + i, F_CENTRE]
+        b = np.median(d)
+        out[q, 0] = np.nan
+        if not b > 2.0:
+            continue
+        ok = True
+        for i in range(n):
+            if abs(d[i] - b) > tol * b:
+                ok = False
+        if not ok:
+            continue
+        lengths = np.empty(n + 1)
+        floor = np.inf
+        for i in range(n + 1):
+            lengths[i] = bands[r, k0 + i, F_LENGTH]
+            floor = min(floor, bands[r, k0 + i, F_FLOOR])
+        out[q, 0] = b
+        out[q, 1] = max(0.0, math.floor(bands[r, k0, F_CENTRE] - 0.5 * b))
+        out[q, 2] = min(float(width), math.ceil(bands[r, k1, F_CENTRE] + 0.5 * b))
+        # NaN floor or width: that reference is missing (then the run stays rejected)
+        out[q, 3] = floor if np.isfinite(floor) else np.nan
+        out[q, 4] = np.median(lengths) / b
+
+
+def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
+                 params: OverlapParams) -> int:  # fmt: skip
+    """Measure the sweeps of runs of overlap-rejected bands, and mark them valid.
+
+    Where neighbouring swept lines overlap, the band detector
+    (:mod:`lightflow.app.core.bands`) rejects their bands (``BAND_OVERLAP``).  A run
+    of at least :data:`MIN_RUN_BANDS` of them in one row, evenly spaced, is one
+    periodic stretch (from half an interval before the first centre to half an
+    interval after the last): :func:`measure_stretch` fits its sweep.  The integer
+    part of ``L / B`` needs two references that must agree: the floor the detector
+    found under the bands (``F_FLOOR``, the lowest gap a few intervals away) and the
+    bands' own widths over the interval (a coarse ``L / B``: right for bands that
+    touch, a fraction for the pulses of lines swept past their neighbours, which the
+    floor then contradicts: such runs stay rejected).  Measured runs get the sweep
+    as their length, the run's spacing as their interval and ``BAND_PERIODIC``.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        The ``(H, W, 3)`` image the bands were detected on.
+    weights : numpy.ndarray
+        ``(2, 3)`` unmixing weights of the patterns.
+    row_y : numpy.ndarray
+        Image row of each measured row.
+    bands, counts : numpy.ndarray
+        The detector's output ``(2, R, max_bands, N_FIELDS)`` and ``(2, R)``, updated
+        in place.
+    line_px, pitch : numpy.ndarray
+        Per pattern, the line width and the line pitch (projector px; uniform
+        patterns): the line is ``line_px * B / pitch`` camera px wide.
+    blur : numpy.ndarray
+        ``(2, 2)`` blur model, ``sigma^2 = a + b * (B / pitch)^2`` (camera px).
+    params : OverlapParams
+
+    Returns
+    -------
+    int
+        The number of runs measured.
+    """
+    width = image.shape[1]
+    parts = []
+    for p in range(2):
+        runs = np.empty((counts.shape[1] * 4, 3), np.int64)
+        m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs)
+        if m == 0:
+            continue
+        prep = np.empty((m, 5))
+        _prepare_runs(bands[p], runs, m, RUN_SPACING_TOLERANCE, width, prep)
+        ok = np.isfinite(prep[:, 0]) & np.isfinite(prep[:, 3]) & np.isfinite(prep[:, 4])
+        if ok.any():
+            parts.append((p, runs[:m][ok], prep[ok]))
+    if not parts:
+        return 0
+    # the signals of the rows with runs, both patterns: stretch s reads row 2 i + p
+    rows_used = np.unique(np.concatenate([runs[:, 0] for _, runs, _ in parts]))
+    signals = np.empty((2 * len(rows_used), width))
+    for i, r in enumerate(rows_used):
+        signals[2 * i : 2 * i + 2] = row_signals(image, int(row_y[r]), weights)
+    pat = np.concatenate([np.full(len(runs), p) for p, runs, _ in parts])
+    runs = np.concatenate([runs for _, runs, _ in parts])
+    prep = np.concatenate([prep for _, _, prep in parts])
+    B = prep[:, 0]
+    mag = B / pitch[pat]
+    sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+    out = measure_stretches(signals, 2 * np.searchsorted(rows_used, runs[:, 0]) + pat,
+                            prep[:, 1].astype(np.int64), prep[:, 2].astype(np.int64), B,
+                            line_px[pat] * mag, sigma, bg=prep[:, 3], prior=prep[:, 4],
+                            params=params)  # fmt: skip
+    done = np.flatnonzero(out[:, O_CODE] == OV_MEASURED)
+    _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B)
+    return len(done)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _mark_runs(bands, pat, runs, done, sweep, B):
+    """The measured runs' bands get their sweep, interval and ``BAND_PERIODIC``."""
+    for q in done:
+        p, r = pat[q], runs[q, 0]
+        for k in range(runs[q, 1], runs[q, 2] + 1):
+            bands[p, r, k, F_LENGTH] = sweep[q]
+            bands[p, r, k, F_INTERVAL] = B[q]
+            bands[p, r, k, F_VALID] = BAND_PERIODIC

@@ -13,6 +13,7 @@ import numpy as np
 
 from . import bands as bd
 from . import causes as cz
+from . import overlap as ov
 from . import response as rsp
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
@@ -30,6 +31,9 @@ NOISE_SCALE = 2.0
 #: error of the log flow ratio that no local spread shows (profile model, pattern
 #: geometry), one sigma (tuning rigs; the same for one and two projectors)
 LOG_RATIO_FLOOR = 0.01
+#: overlapping bands: a run is measured when the predicted error of its sweep is within
+#: this share of it (tuning rigs)
+OVERLAP_MAX_REL_STD = 0.02
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,10 @@ class PipelineConfig:
         Two projectors: where the sparse pattern's measured line interval
         disagrees with the one its dense partner and the rig predict (curved
         surfaces), use the prediction (:mod:`lightflow.app.core.intervals`).
+    measure_overlap : bool
+        Measure the sweeps of runs of overlapping bands (rejected by the band
+        detector) on their periodic profile (:func:`~lightflow.app.core.overlap.measure_runs`;
+        rigs with uniform patterns).
     camera_gamma : float or "auto", optional
         The camera's response, ``DN = full * (light / full) ** (1 / gamma)``;
         default: the rig's (``camera.gamma``; 1, linear, when it gives none).  Unless it
@@ -75,6 +83,7 @@ class PipelineConfig:
     # balls from 14-34 % to 28-48 % coverage, medians within 3 mm (0.08 added little more)
     max_depth_std: float = 0.05
     predict_intervals: bool = True
+    measure_overlap: bool = True
     camera_gamma: float | str | None = None
 
     def __post_init__(self):
@@ -140,6 +149,14 @@ class DepthPipeline:
         if cfg.predict_intervals and not rig.single_projector:
             self.intervals = IntervalModel(rig, cfg.stride, cfg.depth_range)
         self.flow_model.stride = cfg.stride
+        #: the overlap measurement's tuning, None when it is off (or the patterns are not
+        #: uniform: their line width in camera px needs the local pitch)
+        self._overlap = None
+        if cfg.measure_overlap and np.all(self.flow_model.kinds == 0):
+            self._overlap = ov.OverlapParams(max_rel_std=OVERLAP_MAX_REL_STD)
+        #: the last measured frame's cells whose sweeps come from overlapping bands
+        #: (``(2, h, w)`` bool), None when there are none
+        self._periodic: np.ndarray | None = None
         self.channels = [CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns]
         cam = rig.camera
         self.grid_shape = self.lut.h0.shape
@@ -264,6 +281,17 @@ class DepthPipeline:
         scratch = DepthPipeline(self.rig, self.config, lut=self.lut)
         # process() needs only these of a Frame (the core does not import drivers)
         scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
+        if self._overlap is not None:
+            # straight stripes do not overlap: compile the measurement of overlapping runs
+            # on three made-up ones (a flat row: measured as flat, nothing marked)
+            bands = np.full((2, 1, 3, bd.N_FIELDS), np.nan)
+            bands[:, 0, :, bd.F_CENTRE] = [20.0, 40.0, 60.0]
+            bands[:, 0, :, bd.F_VALID] = bd.BAND_OVERLAP
+            bands[:, 0, :, bd.F_FLOOR] = 0.0
+            bands[:, 0, :, bd.F_LENGTH] = 15.0
+            ov.measure_runs(np.zeros((1, 80, 3), np.uint8), np.eye(2, 3), np.zeros(1, np.int64),
+                            bands, np.full((2, 1), 3, np.int64), np.ones(2), np.ones(2),
+                            np.ones((2, 2)), self._overlap)  # fmt: skip
         if self.intervals is not None:
             # straight stripes bend nowhere, so the interval prediction ran on no cell:
             # compile it here, with the argument types of a frame (a grid field view)
@@ -275,7 +303,7 @@ class DepthPipeline:
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
-                           "_full_size", "_linear_table"})  # fmt: skip
+                           "_full_size", "_linear_table", "_overlap", "_periodic"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:
@@ -342,7 +370,7 @@ class DepthPipeline:
             if again is not None:
                 bands, counts, grids = again
         t2 = time.perf_counter()
-        fm = self.flow_model.combine(grids, cfg.flow)
+        fm = self.flow_model.combine(grids, cfg.flow, self._periodic)
         self.blur_px = fm.blur_px
         t3 = time.perf_counter()
         timings["flow"] = (t3 - t2) * 1e3
@@ -355,7 +383,7 @@ class DepthPipeline:
             # predicted interval
             fix = self.intervals.correct(grids[:, 1], z_raw)
             if fix.any():
-                fm = self.flow_model.reread(fm, grids, fix, cfg.flow)
+                fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)
                 raw = fm.log_ratio  # same cells, same causes
                 z_raw, dz_dh = depth_and_slope(self.lut, raw)
         why[np.isfinite(raw) & ~np.isfinite(z_raw)] = cz.DEPTH_RANGE
@@ -444,13 +472,29 @@ class DepthPipeline:
             image, weights, self._row_y, self._windows, self._rows_per_cell,
             self._buffers if buffers is None else buffers,
         )  # fmt: skip
+        t2 = time.perf_counter()
+        timings["bands"] = (t2 - t1) * 1e3
+        k = self._rows_per_cell
+        self._periodic = None
+        if self._overlap is not None:
+            fm = self.flow_model
+            if ov.measure_runs(image, weights, self._row_y, bands, counts, fm.line_px, fm.steps,
+                               fm.blur, self._overlap):  # fmt: skip
+                # cells nearer a periodic band than a band measured alone (codes 2, 1)
+                codes = np.empty((2, 2, gh, gw))
+                fields = np.array([bd.F_VALID, bd.F_INTERVAL], np.int64)
+                for p in range(2):
+                    bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, fields,
+                                       codes[p])  # fmt: skip
+                self._periodic = codes[:, 0] > 0.5 * (bd.BAND_VALID + bd.BAND_PERIODIC)
+        t3 = time.perf_counter()
+        timings["overlap"] = (t3 - t2) * 1e3
         for p in range(2):
             bd.band_slants(bands[p], counts[p], self._row_y)
-        k = self._rows_per_cell
         grids = np.empty((2, len(self._fields), gh, gw))
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
-        timings["bands"] = (time.perf_counter() - t1) * 1e3
+        timings["bands"] += (time.perf_counter() - t3) * 1e3
         return bands, counts, grids
 
     def _response_from_still_lines(self, frame, grids, timings):
