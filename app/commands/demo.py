@@ -267,6 +267,9 @@ def cpu_seconds() -> float:
 class Helper:
     """The helper process: half of the band detector's kernels, the tables, the renderer.
 
+    Last, the kernels of overlapping bands (:func:`lightflow.app.core.overlap.warm_up`),
+    which this process would otherwise compile at the end of the pipeline's warm-up.
+
     It compiles the detector's ``sliding_mid`` while this process compiles
     ``bands_in_row`` (numba's on-disk cache hands each to the other process),
     then builds the band profile tables (from the detector's measurements
@@ -302,6 +305,9 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
+        "from lightflow.app.core import overlap\n"
+        "overlap.warm_up()\n"
+        "print('overlap', flush=True)\n"
     )
 
     def __init__(self, argv: list[str], since, on_renderer=None):
@@ -311,6 +317,7 @@ class Helper:
         self.renderer = threading.Event()
         self.tables = threading.Event()
         self.lut = threading.Event()
+        self.overlap = threading.Event()
         self.proc = subprocess.Popen(
             [sys.executable, "-c", self.SCRIPT, *argv],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -335,10 +342,14 @@ class Helper:
             elif step == "lut":
                 print(f"\n      helper: depth table ready after {self.since()}", flush=True)
                 self.lut.set()
+            elif step == "overlap":
+                print(f"\n      helper: overlapping-band kernels ready after {self.since()}",
+                      flush=True)  # fmt: skip
+                self.overlap.set()
         self.proc.stdout.close()
         self.proc.wait()
         # wake whoever waits: a failed helper leaves its steps to this process
-        for step in (self.sliding_mid, self.renderer, self.tables, self.lut):
+        for step in (self.sliding_mid, self.renderer, self.tables, self.lut, self.overlap):
             step.set()
         if self.on_renderer is not None:
             self.on_renderer()
@@ -597,7 +608,10 @@ def run(args: argparse.Namespace) -> int:
         with CompileProgress("      pipeline") as compiling:
             try:
                 pipeline = DepthPipeline(rig, config, lut=lut)
-                pipeline.warm_up()
+                pipeline.warm_up(overlap=helper is None)
+                if helper is not None:
+                    helper.overlap.wait()  # compiled there meanwhile: loaded from the cache
+                    pipeline.warm_up_overlap()
             finally:
                 done.set()
                 wake.set()

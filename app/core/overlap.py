@@ -75,6 +75,7 @@ from .bands import (
     F_INTERVAL,
     F_LENGTH,
     F_VALID,
+    N_FIELDS,
     row_signals,
 )
 from .threads import run_rows
@@ -701,6 +702,23 @@ def _prepare_runs(bands, runs, m, tol, width, out):
         # NaN floor or width: that reference is missing (then the run stays rejected)
         out[q, 3] = floor if np.isfinite(floor) else np.nan
         out[q, 4] = np.median(lengths) / b
+
+
+def warm_up(params: OverlapParams | None = None) -> None:
+    """Compile :func:`measure_runs`'s kernels (numba caches them on disk).
+
+    On three made-up overlapping bands of a flat row: measured as flat, nothing
+    marked.  The pipeline's warm-up calls it; the demo's helper process calls it
+    too, so that a first run compiles them beside the rest of the pipeline.
+    """
+    bands = np.full((2, 1, 3, N_FIELDS), np.nan)
+    bands[:, 0, :, F_CENTRE] = [20.0, 40.0, 60.0]
+    bands[:, 0, :, F_VALID] = BAND_OVERLAP
+    bands[:, 0, :, F_FLOOR] = 0.0
+    bands[:, 0, :, F_LENGTH] = 15.0
+    measure_runs(np.zeros((1, 80, 3), np.uint8), np.eye(2, 3), np.zeros(1, np.int64), bands,
+                 np.full((2, 1), 3, np.int64), np.ones(2), np.ones(2), np.ones((2, 2)),
+                 OverlapParams() if params is None else params)  # fmt: skip
 
 
 def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,

@@ -261,7 +261,7 @@ class DepthPipeline:
 
     # ------------------------------------------------------------------ public
 
-    def warm_up(self) -> float:
+    def warm_up(self, overlap: bool = True) -> float:
         """Compile the kernels and load the tables before a camera streams; return seconds.
 
         The first frame through a fresh process costs hundreds of milliseconds
@@ -269,6 +269,8 @@ class DepthPipeline:
         stall would back up into the camera.  A scratch pipeline sharing this
         one's depth table processes a striped test image, so this pipeline's
         learnt state (colour leak, windows) still starts from real frames.
+        ``overlap=False`` leaves out :meth:`warm_up_overlap` (for a caller that has
+        another process compile those kernels meanwhile).
         """
         from types import SimpleNamespace
 
@@ -281,17 +283,8 @@ class DepthPipeline:
         scratch = DepthPipeline(self.rig, self.config, lut=self.lut)
         # process() needs only these of a Frame (the core does not import drivers)
         scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
-        if self._overlap is not None:
-            # straight stripes do not overlap: compile the measurement of overlapping runs
-            # on three made-up ones (a flat row: measured as flat, nothing marked)
-            bands = np.full((2, 1, 3, bd.N_FIELDS), np.nan)
-            bands[:, 0, :, bd.F_CENTRE] = [20.0, 40.0, 60.0]
-            bands[:, 0, :, bd.F_VALID] = bd.BAND_OVERLAP
-            bands[:, 0, :, bd.F_FLOOR] = 0.0
-            bands[:, 0, :, bd.F_LENGTH] = 15.0
-            ov.measure_runs(np.zeros((1, 80, 3), np.uint8), np.eye(2, 3), np.zeros(1, np.int64),
-                            bands, np.full((2, 1), 3, np.int64), np.ones(2), np.ones(2),
-                            np.ones((2, 2)), self._overlap)  # fmt: skip
+        if overlap:
+            self.warm_up_overlap()
         if self.intervals is not None:
             # straight stripes bend nowhere, so the interval prediction ran on no cell:
             # compile it here, with the argument types of a frame (a grid field view)
@@ -300,6 +293,15 @@ class DepthPipeline:
             depth = np.full((4, 4), 0.7, np.float32)
             self.intervals.disagreement(grids[:, 1], np.where(depth > 0, depth, np.nan))
         return time.perf_counter() - t0
+
+    def warm_up_overlap(self) -> None:
+        """Compile (or load) the kernels of overlapping bands, when they are measured.
+
+        The striped test image of :meth:`warm_up` has none (about 6 s of compilation
+        on a first run, the largest part of the pipeline's).
+        """
+        if self._overlap is not None:
+            ov.warm_up(self._overlap)
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
