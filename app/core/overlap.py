@@ -295,7 +295,10 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     dinv = np.empty(P)
     if not _cholesky_solve(G, rhs, sol, dinv):
         return np.nan
-    rss = max(sxx - np.dot(sol, rhs), 0.0)
+    dot = 0.0  # a loop: numba's np.dot compiles a BLAS wrapper (a second of a first run)
+    for i in range(P):
+        dot += sol[i] * rhs[i]
+    rss = max(sxx - dot, 0.0)
     coef[0] = sol[0]
     var_c[0] = dinv[0]
     for m in range(1, M + 1):
@@ -368,7 +371,10 @@ def _pulse_fit(coef, M, B, K, hfx):
         inv = _inv3(JtJ)
         if not np.isfinite(inv[0, 0]):
             return out
-        step = inv @ Jtr
+        step = np.zeros(3)  # inv @ Jtr, as a loop (see harmonic_fit)
+        for a in range(3):
+            for b in range(3):
+                step[a] += inv[a, b] * Jtr[b]
         h += step[0]
         f += step[1]
         x0 += step[2]
@@ -672,6 +678,24 @@ def _find_runs(bands, counts, min_bands, runs):
 
 
 @nb.njit(cache=True, error_model="numpy")
+def _median(values):
+    """``np.median`` of a short array (sorted in place by insertion: numba's median
+    compiles a partition kernel, a second of a first run)."""
+    n = values.shape[0]
+    for i in range(n):
+        if np.isnan(values[i]):
+            return np.nan  # as np.median
+    for i in range(1, n):
+        v = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > v:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = v
+    return values[n // 2] if n % 2 else 0.5 * (values[n // 2 - 1] + values[n // 2])
+
+
+@nb.njit(cache=True, error_model="numpy")
 def _prepare_runs(bands, runs, m, tol, width, out):
     """Per run of one pattern: ``out[q] = (B, lo, hi, floor, width over B)``, or NaN ``B``
     when its centre spacings disagree (more than ``tol`` of their median) with each other."""
@@ -681,7 +705,7 @@ def _prepare_runs(bands, runs, m, tol, width, out):
         d = np.empty(n)
         for i in range(n):
             d[i] = bands[r, k0 + i + 1, F_CENTRE] - bands[r, k0 + i, F_CENTRE]
-        b = np.median(d)
+        b = _median(d)
         out[q, 0] = np.nan
         if not b > 2.0:
             continue
@@ -701,7 +725,7 @@ def _prepare_runs(bands, runs, m, tol, width, out):
         out[q, 2] = min(float(width), math.ceil(bands[r, k1, F_CENTRE] + 0.5 * b))
         # NaN floor or width: that reference is missing (then the run stays rejected)
         out[q, 3] = floor if np.isfinite(floor) else np.nan
-        out[q, 4] = np.median(lengths) / b
+        out[q, 4] = _median(lengths) / b
 
 
 def warm_up(params: OverlapParams | None = None) -> None:
