@@ -703,8 +703,8 @@ class RerunSink:
         # the viewer ignores the alpha channel of an image whose opacity is exactly 1
         rec.log("world/camera/depth_overlay",
                 rr.Image(overlay, color_model="RGBA", draw_order=1.0, opacity=0.99))
-        # the points of the analysis grid: a sixteenth of the pixels, no fewer than
-        # max_points would keep, and the depth itself (no interpolated values)
+        # the points of the analysis grid: the depth's own samples (the full-resolution
+        # map adds only interpolated ones), a sixteenth of the work
         if result.depth_grid is not None:
             points, _ = depth_to_points(result.depth_grid, self._rays_at(result.stride), None,
                                         self.max_points)  # fmt: skip
