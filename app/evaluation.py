@@ -213,6 +213,32 @@ def _all_lit_mask(truth, n_projectors: int | None) -> np.ndarray:
     return truth.lit == full
 
 
+def coverage(depth: np.ndarray, truth, n_projectors: int | None = None) -> float:
+    """Share of the moving pixels lit by every projector that have a depth.
+
+    The coverage of :func:`evaluate_frame` alone, without the error statistics
+    (a live view logs it on every frame).
+
+    Parameters
+    ----------
+    depth : numpy.ndarray
+        ``(H, W)`` estimated z, NaN without estimate.
+    truth : GroundTruth
+    n_projectors : int, optional
+        As in :func:`evaluate_frame`.
+
+    Returns
+    -------
+    float
+        NaN when no moving pixel is lit by every projector.
+    """
+    target = (truth.object_id >= 2) & _all_lit_mask(truth, n_projectors)
+    n_target = int(np.count_nonzero(target))
+    if not n_target:
+        return math.nan
+    return int(np.count_nonzero(np.isfinite(depth[target]))) / n_target
+
+
 def evaluate_frame(
     depth: np.ndarray,
     truth,

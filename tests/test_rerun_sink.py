@@ -91,12 +91,18 @@ def check_round_trip(path):
     assert sorted(column(ent["/world/camera/depth"], "frame")) == [0, 1, 2]
     fmt = column(ent["/world/camera/depth"], "DepthImage:format")[0][0]
     buf = bytes(column(ent["/world/camera/depth"], "DepthImage:buffer")[0][0])
-    depth = np.frombuffer(buf, np.float32).reshape(fmt["height"], fmt["width"])
+    depth = np.frombuffer(buf, np.uint16).reshape(fmt["height"], fmt["width"])
     assert depth.shape == (300, 400)
     assert (depth[:150] == 0).all()  # no estimate is 0 for Rerun
-    assert depth[150:] == pytest.approx(0.8)
-    assert column(ent["/world/camera/depth"], "DepthImage:meter")[0] == [1.0]
-    assert column(ent["/world/camera/depth"], "DepthImage:depth_range")[0] == [[0.4, 1.2]]
+    assert (depth[150:] == 800).all()  # millimetres
+    assert column(ent["/world/camera/depth"], "DepthImage:meter")[0] == [1000.0]
+    assert column(ent["/world/camera/depth"], "DepthImage:depth_range")[0] == [[400.0, 1200.0]]
+    # the overlay: class 0 (transparent) without depth, else the depth's step of the range
+    fmt = column(ent["/world/camera/depth_overlay"], "SegmentationImage:format")[0][0]
+    buf = bytes(column(ent["/world/camera/depth_overlay"], "SegmentationImage:buffer")[0][0])
+    ids = np.frombuffer(buf, np.uint8).reshape(fmt["height"], fmt["width"])
+    assert (ids[:150] == 0).all()
+    assert (ids[150:] == 128).all()  # 0.8 m: the middle of 0.4-1.2 m, 1 + 127 steps
 
     positions = column(ent["/world/points"], "Points3D:positions")
     assert [len(p) for p in positions] == [5000, 5000, 5000]  # 60000 subsampled
