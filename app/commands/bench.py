@@ -17,7 +17,9 @@ rig's native camera size (1600x1200 for the example rigs).  Frames are
 rendered with the synthetic camera first and kept in memory, so file decoding
 is not counted; the depth table (LUT) is built or loaded before timing, and a
 warm-up pass compiles the numba kernels.  Reported: median and 90th percentile
-per stage, the wall time per frame and the frame rate.
+per stage, the wall time per frame, the frame rate, and the CPU time per frame
+of all the pipeline's threads (it varies far less than the wall time when other
+work shares the cores).
 
 End to end: the rendered frames are written as a recording (PNG, like
 `capture --record`), then replayed into the same (warm) pipeline with a
@@ -168,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
         pipeline.process(frames[i % len(frames)])
         _progress("warm-up", i + 1, WARMUP)
     timings, wall = [], []
+    cpu0 = time.process_time()
     for i in range(args.frames):
         frame = frames[i % len(frames)]
         t = time.perf_counter()
@@ -175,6 +178,7 @@ def run(args: argparse.Namespace) -> int:
         wall.append((time.perf_counter() - t) * 1e3)
         timings.append(dict(result.timings_ms))
         _progress("timing", i + 1, args.frames)
+    cpu_ms = (time.process_time() - cpu0) / args.frames * 1e3
     print()
     for line in stage_table(timings, wall):
         print(line)
@@ -183,6 +187,9 @@ def run(args: argparse.Namespace) -> int:
         f"\n{1e3 / med:.1f} frames/s (median wall time {med:.1f} ms over {args.frames} frames,"
         f" {sum(wall) / 1e3:.2f} s in all)"
     )
+    # CPU time counts every thread of this process and not the waits for a core that other
+    # work holds: on a shared machine it varies far less than the wall time
+    print(f"CPU per frame: {cpu_ms:.1f} ms (all threads of the pipeline)")
     if args.e2e_frames < 0:
         raise ConfigError(f"--e2e-frames: expected 0 or more, got {args.e2e_frames}")
     if args.e2e_frames:
