@@ -128,6 +128,10 @@ class FlowMaps:
     why : numpy.ndarray
         uint8 :mod:`lightflow.app.core.causes` code: ``DEPTH`` where ``log_ratio`` is
         finite, else why not.
+    swept : numpy.ndarray
+        bool: both patterns' bands in the cell are measurably wider than a line
+        standing still (above the measure floor), whether or not they pass the
+        moving test: lines that move, if too little for a flow.
     """
 
     log_ratio: np.ndarray
@@ -136,6 +140,7 @@ class FlowMaps:
     lr_var: np.ndarray
     lr_sys: np.ndarray
     why: np.ndarray
+    swept: np.ndarray
 
 
 #: the per-band ramp solve of :func:`fit_blur` comes out about 10 % low in sigma (noisy
@@ -558,7 +563,7 @@ class FlowModel:
         flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
                  .astype(np.float32) for p in range(2)]  # fmt: skip
         return FlowMaps(log_ratio.astype(np.float32), flows, first.blur_px, first.lr_var,
-                        first.lr_sys, first.why)  # fmt: skip
+                        first.lr_sys, first.why, first.swept)  # fmt: skip
 
     def recombine(self, grids: np.ndarray, params: FlowParams,
                   periodic: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
@@ -589,6 +594,7 @@ class FlowModel:
             pitch,
             interval_ratio, banded, sens, why,
         )  # fmt: skip
+        swept = np.isfinite(sweeps[0]) & np.isfinite(sweeps[1])
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
         # (only the cells whose noise pushes them up would pass; E[log L] < log E[L]).
@@ -609,7 +615,8 @@ class FlowModel:
             params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio, flows,
             lr_var, lr_sys, why,
         )  # fmt: skip
-        return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why)
+        return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why,
+                        swept)  # fmt: skip
 
     def replace_previous(self, grids: np.ndarray) -> None:
         """The previous frame's grids measured again (the camera's response changed):

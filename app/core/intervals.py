@@ -182,6 +182,35 @@ class IntervalModel:
                  lg, have)  # fmt: skip
         return lg, have
 
+    def depth(self, intervals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per grid cell, the depth that the two patterns' line intervals alone give.
+
+        Along a row, pattern ``i``'s interval is ``P_i / |A_i(z) + (dz/dx) C_i(z)|``:
+        two intervals, two unknowns.  For each depth of the tables the first
+        pattern's interval fixes ``dz/dx`` and predicts the second's; the depth is
+        where the prediction meets the measurement.  No motion is needed, so it
+        serves cells whose lines move too little for a flow (a fan near its hub).
+
+        Parameters
+        ----------
+        intervals : numpy.ndarray
+            ``(2, h, w)`` measured line intervals (camera px).
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray)
+            ``(h, w)`` float32 depth (m) and the sensitivity ``|d log(B_1 / B_0) /
+            d log z|`` there (an interval ratio off by ``e`` moves the log depth by
+            ``e`` over it); NaN where the intervals are missing, where no depth of
+            the working range, or more than one, explains them.
+        """
+        h, w = intervals.shape[1:]
+        z = np.empty((h, w), np.float32)
+        sens = np.empty((h, w), np.float32)
+        run_rows(_interval_depth, h, intervals, self.a, self.c, self.pitch, self.inv_z0,
+                 self.inv_z_step, COARSE, z, sens)  # fmt: skip
+        return z, sens
+
     def _curved(self, intervals: np.ndarray, sparse: int, sparse_interval: float) -> np.ndarray:
         """Where the dense pattern's intervals bend over the sparse pattern's reach.
 
@@ -294,3 +323,55 @@ def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, den
                 continue
             out[s, i, j] = math.log(intervals[s, i, j] * abs(du_s) / pitch[s])
             have[s, i, j] = 1.0
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _interval_depth(intervals, a, c, pitch, inv_z0, inv_z_step, coarse, z_out, sens_out, i0, i1):
+    """:meth:`IntervalModel.depth` on grid rows ``i0 .. i1``."""
+    nz = a.shape[1]
+    w = intervals.shape[2]
+    res = np.empty(nz)
+    for i in range(i0, i1):
+        fi = i / coarse
+        r0 = int(fi)
+        fr = fi - r0
+        for j in range(w):
+            z_out[i, j] = np.nan
+            sens_out[i, j] = np.nan
+            b0 = intervals[0, i, j]
+            b1 = intervals[1, i, j]
+            if not (b0 > 0.0 and b1 > 0.0):
+                continue
+            fj = j / coarse
+            c0 = int(fj)
+            fc = fj - c0
+            for k in range(nz):
+                kk = min(k, nz - 2)  # _at reads the next depth too (at weight 0 here)
+                a0 = _at(a, 0, kk, k - kk, r0, fr, c0, fc)
+                k0 = _at(c, 0, kk, k - kk, r0, fr, c0, fc)
+                a1 = _at(a, 1, kk, k - kk, r0, fr, c0, fc)
+                k1 = _at(c, 1, kk, k - kk, r0, fr, c0, fc)
+                res[k] = np.nan
+                if k0 == 0.0:
+                    continue
+                # pattern 0's interval fixes dz/dx (same sign of du/dx as at a fixed depth)
+                g = (math.copysign(pitch[0] / b0, a0) - a0) / k0
+                du1 = a1 + g * k1
+                if du1 != 0.0:
+                    res[k] = math.log(abs(du1) * b1 / pitch[1])
+            found = -1
+            for k in range(nz - 1):
+                if np.isfinite(res[k]) and np.isfinite(res[k + 1]) \
+                        and (res[k] <= 0.0) != (res[k + 1] <= 0.0):  # fmt: skip
+                    if found >= 0:
+                        found = -2  # two depths explain the intervals: none is known
+                        break
+                    found = k
+            if found < 0:
+                continue
+            f = res[found] / (res[found] - res[found + 1])
+            iz = inv_z0 + (found + f) * inv_z_step
+            z_out[i, j] = 1.0 / iz
+            # the tables are uniform in 1/z: log z changes by log(iz_k / iz_k+1) per step
+            dlogz = math.log((inv_z0 + found * inv_z_step) / (inv_z0 + (found + 1) * inv_z_step))
+            sens_out[i, j] = abs((res[found + 1] - res[found]) / dlogz)

@@ -34,6 +34,12 @@ LOG_RATIO_FLOOR = 0.01
 #: overlapping bands: a run is measured when the predicted error of its sweep is within
 #: this share of it (tuning rigs)
 OVERLAP_MAX_REL_STD = 0.02
+#: depth from the line intervals (two projectors): random error of one band's log
+#: interval ratio, and the error no averaging removes (line centres biased by blur and
+#: sweep, the tables' geometry), one sigma (tuning rigs: the intervals on boards and fans
+#: against the renderer's truth)
+INTERVAL_NOISE = 0.007
+INTERVAL_FLOOR = 0.005
 
 
 @dataclass(frozen=True)
@@ -60,6 +66,11 @@ class PipelineConfig:
         Two projectors: where the sparse pattern's measured line interval
         disagrees with the one its dense partner and the rig predict (curved
         surfaces), use the prediction (:mod:`lightflow.app.core.intervals`).
+    interval_depth : bool
+        Two projectors: cells whose lines move, but too little for a flow (a fan
+        near its hub at 1 ms), get the depth their two line intervals give
+        (:meth:`~lightflow.app.core.intervals.IntervalModel.depth`; needs
+        ``predict_intervals``).  Lines that stand still (a wall) get none.
     measure_overlap : bool
         Measure the sweeps of runs of overlapping bands (rejected by the band
         detector) on their periodic profile (:func:`~lightflow.app.core.overlap.measure_runs`;
@@ -83,6 +94,7 @@ class PipelineConfig:
     # balls from 14-34 % to 28-48 % coverage, medians within 3 mm (0.08 added little more)
     max_depth_std: float = 0.05
     predict_intervals: bool = True
+    interval_depth: bool = True
     measure_overlap: bool = True
     camera_gamma: float | str | None = None
 
@@ -408,6 +420,8 @@ class DepthPipeline:
         timings["smooth"] = (t4 - t3) * 1e3
         depth_grid = lookup_depth(self.lut, log_ratio)
         std_grid[~np.isfinite(depth_grid)] = np.nan
+        if self.intervals is not None and cfg.interval_depth:
+            self._depth_from_intervals(grids[:, 1], fm.swept, sigma_f, depth_grid, std_grid)
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
@@ -436,6 +450,33 @@ class DepthPipeline:
             warnings=self._warnings(counts_by_cause),
             intervals_grid=grids[:, 1],
         )
+
+    def _depth_from_intervals(self, intervals, swept, sigma, depth_grid, std_grid) -> None:
+        """Fill ``depth_grid`` and ``std_grid`` (in place) where lines move too little for a flow.
+
+        The depth the two line intervals give (:meth:`IntervalModel.depth`) is smoothed
+        like the log flow ratio, over the cells whose lines move (both patterns' bands
+        wider than a still line), and kept where it is predicted within
+        ``max_depth_std``.
+        """
+        z, sens = self.intervals.depth(intervals)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            have = swept & np.isfinite(z)
+            if not have.any():
+                return
+            # independent bands under the kernel: cells times the stride over the interval
+            bands_averaged = np.maximum(
+                1.0, 4.0 * np.pi * sigma * sigma * self.config.stride / intervals.mean(axis=0))
+            var = (INTERVAL_NOISE**2 / bands_averaged + INTERVAL_FLOOR**2) / (sens * sens)
+            log_z = np.where(have, np.log(z), np.nan)
+            log_z, var = smooth_log_ratio(log_z, sigma, self.config.flow.outlier_sigmas,
+                                          self.config.flow.fill_fraction, var)  # fmt: skip
+            z = np.exp(log_z)
+            std = z * np.sqrt(var)
+            fill = (~np.isfinite(depth_grid) & (std <= self.config.max_depth_std * z)
+                    & (z >= self.config.depth_range.near) & (z <= self.config.depth_range.far))
+        depth_grid[fill] = z[fill]
+        std_grid[fill] = std[fill]
 
     def _measure(self, frame, timings: dict, buffers=None):
         """Unmix and measure the bands of ``frame``: ``(bands, counts, grids)``.
