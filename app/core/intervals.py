@@ -182,7 +182,8 @@ class IntervalModel:
                  lg, have)  # fmt: skip
         return lg, have
 
-    def depth(self, intervals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def depth(self, intervals: np.ndarray, where: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
         """Per grid cell, the depth that the two patterns' line intervals alone give.
 
         Along a row, pattern ``i``'s interval is ``P_i / |A_i(z) + (dz/dx) C_i(z)|``:
@@ -195,6 +196,8 @@ class IntervalModel:
         ----------
         intervals : numpy.ndarray
             ``(2, h, w)`` measured line intervals (camera px).
+        where : numpy.ndarray, optional
+            ``(h, w)`` bool: only these cells (NaN elsewhere); default all.
 
         Returns
         -------
@@ -207,7 +210,9 @@ class IntervalModel:
         h, w = intervals.shape[1:]
         z = np.empty((h, w), np.float32)
         sens = np.empty((h, w), np.float32)
-        run_rows(_interval_depth, h, intervals, self.a, self.c, self.pitch, self.inv_z0,
+        if where is None:
+            where = np.ones((h, w), np.bool_)
+        run_rows(_interval_depth, h, intervals, where, self.a, self.c, self.pitch, self.inv_z0,
                  self.inv_z_step, COARSE, z, sens)  # fmt: skip
         return z, sens
 
@@ -325,12 +330,45 @@ def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, den
             have[s, i, j] = 1.0
 
 
+#: :meth:`IntervalModel.depth` looks for the depth on every SCAN-th depth of the
+#: tables first, then between the two that bracket it (the residual is smooth in 1/z)
+SCAN = 3
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _interval_residual(a, c, pitch, b0, b1, k, r0, fr, c0, fc):
+    """Pattern 1's interval predicted at depth index ``k`` over the measured one, minus 1.
+
+    Pattern 0's interval fixes dz/dx (same sign of du/dx as at a fixed depth).  No log:
+    only its zero and the slope there are used, where the two agree.
+    """
+    nz = a.shape[1]
+    kk = min(k, nz - 2)  # _at reads the next depth too (at weight 0 here)
+    a0 = _at(a, 0, kk, k - kk, r0, fr, c0, fc)
+    k0 = _at(c, 0, kk, k - kk, r0, fr, c0, fc)
+    if k0 == 0.0:
+        return np.nan
+    a1 = _at(a, 1, kk, k - kk, r0, fr, c0, fc)
+    k1 = _at(c, 1, kk, k - kk, r0, fr, c0, fc)
+    g = (math.copysign(pitch[0] / b0, a0) - a0) / k0
+    return abs(a1 + g * k1) * b1 / pitch[1] - 1.0
+
+
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _interval_depth(intervals, a, c, pitch, inv_z0, inv_z_step, coarse, z_out, sens_out, i0, i1):
+def _interval_depth(intervals, where, a, c, pitch, inv_z0, inv_z_step, coarse, z_out, sens_out,
+                    i0, i1):  # fmt: skip
     """:meth:`IntervalModel.depth` on grid rows ``i0 .. i1``."""
     nz = a.shape[1]
     w = intervals.shape[2]
-    res = np.empty(nz)
+    ks = np.empty(nz, np.int64)  # the scanned depth indices, the last one included
+    n = 0
+    for k in range(0, nz, SCAN):
+        ks[n] = k
+        n += 1
+    if ks[n - 1] != nz - 1:
+        ks[n] = nz - 1
+        n += 1
+    res = np.empty(n)
     for i in range(i0, i1):
         fi = i / coarse
         r0 = int(fi)
@@ -340,38 +378,39 @@ def _interval_depth(intervals, a, c, pitch, inv_z0, inv_z_step, coarse, z_out, s
             sens_out[i, j] = np.nan
             b0 = intervals[0, i, j]
             b1 = intervals[1, i, j]
-            if not (b0 > 0.0 and b1 > 0.0):
+            if not (where[i, j] and b0 > 0.0 and b1 > 0.0):
                 continue
             fj = j / coarse
             c0 = int(fj)
             fc = fj - c0
-            for k in range(nz):
-                kk = min(k, nz - 2)  # _at reads the next depth too (at weight 0 here)
-                a0 = _at(a, 0, kk, k - kk, r0, fr, c0, fc)
-                k0 = _at(c, 0, kk, k - kk, r0, fr, c0, fc)
-                a1 = _at(a, 1, kk, k - kk, r0, fr, c0, fc)
-                k1 = _at(c, 1, kk, k - kk, r0, fr, c0, fc)
-                res[k] = np.nan
-                if k0 == 0.0:
-                    continue
-                # pattern 0's interval fixes dz/dx (same sign of du/dx as at a fixed depth)
-                g = (math.copysign(pitch[0] / b0, a0) - a0) / k0
-                du1 = a1 + g * k1
-                if du1 != 0.0:
-                    res[k] = math.log(abs(du1) * b1 / pitch[1])
+            for q in range(n):
+                res[q] = _interval_residual(a, c, pitch, b0, b1, ks[q], r0, fr, c0, fc)
             found = -1
-            for k in range(nz - 1):
-                if np.isfinite(res[k]) and np.isfinite(res[k + 1]) \
-                        and (res[k] <= 0.0) != (res[k + 1] <= 0.0):  # fmt: skip
+            for q in range(n - 1):
+                if np.isfinite(res[q]) and np.isfinite(res[q + 1]) \
+                        and (res[q] <= 0.0) != (res[q + 1] <= 0.0):  # fmt: skip
                     if found >= 0:
                         found = -2  # two depths explain the intervals: none is known
                         break
-                    found = k
+                    found = q
             if found < 0:
                 continue
-            f = res[found] / (res[found] - res[found + 1])
-            iz = inv_z0 + (found + f) * inv_z_step
+            # the bracket's own depths, for the step that holds the zero
+            lo = ks[found]
+            r_lo = res[found]
+            r_hi = res[found + 1]
+            for k in range(ks[found] + 1, ks[found + 1]):
+                r = _interval_residual(a, c, pitch, b0, b1, k, r0, fr, c0, fc)
+                if not np.isfinite(r):
+                    break
+                if (r <= 0.0) != (r_lo <= 0.0):
+                    r_hi = r
+                    break
+                lo = k
+                r_lo = r
+            f = r_lo / (r_lo - r_hi)
+            iz = inv_z0 + (lo + f) * inv_z_step
             z_out[i, j] = 1.0 / iz
             # the tables are uniform in 1/z: log z changes by log(iz_k / iz_k+1) per step
-            dlogz = math.log((inv_z0 + found * inv_z_step) / (inv_z0 + (found + 1) * inv_z_step))
-            sens_out[i, j] = abs((res[found + 1] - res[found]) / dlogz)
+            dlogz = math.log((inv_z0 + lo * inv_z_step) / (inv_z0 + (lo + 1) * inv_z_step))
+            sens_out[i, j] = abs((r_hi - r_lo) / dlogz)

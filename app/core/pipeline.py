@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, fields
 
+import cv2
 import numpy as np
 
 from . import bands as bd
@@ -304,6 +305,8 @@ class DepthPipeline:
             grids[1, 1] = 45.0
             depth = np.full((4, 4), 0.7, np.float32)
             self.intervals.disagreement(grids[:, 1], np.where(depth > 0, depth, np.nan))
+            # and the depth from the intervals, which runs only where lines move too little
+            self.intervals.depth(grids[:, 1], np.ones((4, 4), np.bool_))
         return time.perf_counter() - t0
 
     def warm_up_overlap(self) -> None:
@@ -459,9 +462,15 @@ class DepthPipeline:
         wider than a still line), and kept where it is predicted within
         ``max_depth_std``.
         """
-        z, sens = self.intervals.depth(intervals)
+        wanted = swept & ~np.isfinite(depth_grid)
+        if not wanted.any():
+            return  # a board: every moving cell has its flow
+        # the cells to fill and those the smoothing averages them with
+        r = int(2.0 * sigma) + 1
+        near = cv2.dilate(wanted.view(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        z, sens = self.intervals.depth(intervals, swept & near.view(bool))
         with np.errstate(invalid="ignore", divide="ignore"):
-            have = swept & np.isfinite(z)
+            have = np.isfinite(z)
             if not have.any():
                 return
             # independent bands under the kernel: cells times the stride over the interval
