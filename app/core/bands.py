@@ -23,7 +23,8 @@ interval), bands whose gaps lie well above the floor a few intervals away (sweep
 longer than the interval: the swept lines add up to narrow pulses on a raised floor,
 shaped like short bands; where no gap within :data:`FLOOR_GAPS` gaps shows the floor,
 they are not told apart), asymmetric bands (cut by an object boundary or the panel edge),
-bands whose neighbour intervals disagree (boundaries, missing lines), and
+bands whose neighbour intervals disagree (boundaries, missing lines; not where the
+spacing changes as a smooth trend, the lines bunching towards a ball's limb), and
 faint bands.  Static lines are rejected later, where the line width in
 camera pixels is known (:mod:`lightflow.app.core.flow`).
 """
@@ -71,7 +72,8 @@ class BandParams:
     min_contrast : float
         Smallest band height above its background, as a fraction of full scale.
     interval_tolerance : float
-        Largest relative difference between a band's two neighbour intervals.
+        Largest relative difference between a band's two neighbour intervals; twice
+        that where the spacings around change as a smooth trend (a ball's limb).
     symmetry_tolerance_px : float
         Largest difference between the two ramp widths of one band.
     min_gap_px : float
@@ -830,17 +832,24 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         hp = out[kp, F_HEIGHT]
         hn = out[kn, F_HEIGHT]
         if abs(d1 - d2) > itol * interval:
-            # a depth edge beside the band (a blade before the wall, a ball's limb): when
-            # the spacings on exactly one side agree, the band lies on that side's surface
+            # a depth edge beside the band (a blade before the wall, a ball before a wall):
+            # when the spacings on exactly one side agree, the band lies on that side's
+            # surface
             left = _side_interval(out, ns, k, kp, kp - 1, itol)
             right = _side_interval(out, ns, k, kn, kn + 1, itol)
             if np.isfinite(left) != np.isfinite(right):
                 interval = left if np.isfinite(left) else right
                 out[k, F_INTERVAL] = interval
                 hp = hn = out[kp, F_HEIGHT] if np.isfinite(left) else out[kn, F_HEIGHT]
-            elif abs(d1 - d2) > itol * interval:
-                out[k, F_VALID] = BAND_IRREGULAR
-                continue
+            else:
+                # neither side's spacings agree: a smooth trend (a ball's limb), not a step
+                trend = np.nan if np.isfinite(left) else _trend_interval(out, ns, kp, k, kn,
+                                                                         itol)  # fmt: skip
+                if not np.isfinite(trend):
+                    out[k, F_VALID] = BAND_IRREGULAR
+                    continue
+                interval = trend
+                out[k, F_INTERVAL] = interval
         support = out[k, F_LENGTH] + ramp
         if support > interval - min_gap:
             out[k, F_VALID] = BAND_OVERLAP
@@ -849,6 +858,70 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
             out[k, F_VALID] = BAND_IRREGULAR
     return ns
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _trend_interval(out, ns, kp, k, kn, itol):
+    """Band ``k``'s interval where its spacings change as a smooth trend; NaN at a step.
+
+    On a ball the lines of a sparse pattern bunch towards the limb: the spacing grows
+    from line to line by a ratio that changes slowly, and the two spacings of a band
+    (to ``kp`` and ``kn``) can differ by more than ``itol`` of the interval with no
+    depth edge near.  A depth edge is a step, in one place.  So the band is kept when
+    its spacings differ by at most twice ``itol`` of the interval and every further
+    spacing on either side (one at least) continues the change the same way, by a log
+    ratio within a factor of two of the band's own.
+
+    There the mean spacing is a poor interval (the derivative of a quadratic in the line
+    index: 3-10 % long against the renderer's truth on the tuning rigs' balls).  The
+    lines' density along the row, ``1 / spacing``, is what the surface's depth and slope
+    set, smooth in the camera column: from the three spacings of four lines on one side
+    it is interpolated quadratically (at the spacings' middles) to the band; both sides'
+    intervals are averaged where both have a fourth line.
+    """
+    c0 = out[k, F_CENTRE]
+    cp = out[kp, F_CENTRE]
+    cn = out[kn, F_CENTRE]
+    d1 = c0 - cp
+    d2 = cn - c0
+    if abs(d1 - d2) > itol * (d1 + d2):
+        return np.nan
+    g12 = math.log(d2 / d1)
+    acc = 0.0
+    n = 0
+    for side in range(2):
+        q = kp - 1 if side == 0 else kn + 1
+        if q < 0 or q >= ns or not np.isfinite(out[q, F_CENTRE]):
+            continue
+        cq = out[q, F_CENTRE]
+        # four consecutive lines, the band second (left fourth line) or third
+        x0, x1, x2, x3 = (cq, cp, c0, cn) if side == 0 else (cp, c0, cn, cq)
+        if not (x1 - x0 > 2.0 and x3 - x2 > 2.0):  # merged bands
+            return np.nan
+        g = math.log((x2 - x1) / (x1 - x0)) if side == 0 else math.log((x3 - x2) / (x2 - x1))
+        if g * g12 <= 0.0 or min(abs(g), abs(g12)) < 0.5 * max(abs(g), abs(g12)):
+            return np.nan
+        rho = _density_at(x0, x1, x2, x3, c0)
+        if not rho > 0.0:
+            return np.nan
+        acc += 1.0 / rho
+        n += 1
+    return acc / n if n else np.nan
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _density_at(x0, x1, x2, x3, x):
+    """Lines per camera px at ``x``: the quadratic through each spacing's reciprocal at
+    its middle, of the four consecutive line centres ``x0 < x1 < x2 < x3``."""
+    m0 = 0.5 * (x0 + x1)
+    m1 = 0.5 * (x1 + x2)
+    m2 = 0.5 * (x2 + x3)
+    r0 = 1.0 / (x1 - x0)
+    r1 = 1.0 / (x2 - x1)
+    r2 = 1.0 / (x3 - x2)
+    return (r0 * (x - m1) * (x - m2) / ((m0 - m1) * (m0 - m2))
+            + r1 * (x - m0) * (x - m2) / ((m1 - m0) * (m1 - m2))
+            + r2 * (x - m0) * (x - m1) / ((m2 - m0) * (m2 - m1)))  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy")
