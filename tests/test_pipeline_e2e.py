@@ -287,9 +287,9 @@ def test_tilted_board_moving_diagonally_unbiased_on_an_unseen_rig():
 def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     """Fan at the paper's 1 ms on a rig with a projector in front of the camera plane.
 
-    Measured here: median 2.8 mm, signed -1.6 mm, coverage 0.527 (where the lines move too
-    little for a flow, the depth from the two line intervals; without it: 4.5 mm, -3.9 mm,
-    0.312).  The second frame uses the
+    Measured here: median 2.0 mm, signed -1.2 mm, coverage 0.527 (where the lines move too
+    little for a flow, the depth from the two line intervals, and averaged with the flow's
+    where both are; without it: 4.5 mm, -3.9 mm, 0.312).  The second frame uses the
     blur measured on the wall's still lines, and its shorter static limit; before that
     limit: 4.6 mm, -2.4 mm, 0.237.  Before the tails of
     narrow gaps were subtracted and max_depth_std went to 5 %: 3.0 mm, -0.04 mm, 0.152;
@@ -303,8 +303,8 @@ def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     rig = _generated_rig(((-0.25, 0.0, 0.35), 35, 1200, 36), ((0.42, 0.02, -0.20), 16, 1500, 16),
                          crop=(640, 640, 960, 280))  # fmt: skip
     s = _signed_scores(rig, "fan", 0.001)
-    assert s["median_mm"] <= 4.0
-    assert abs(s["signed_mm"]) <= 3.0
+    assert s["median_mm"] <= 3.0
+    assert abs(s["signed_mm"]) <= 2.5
     assert s["coverage"] >= 0.48
     assert s["off_fraction"] <= 0.02
 
@@ -313,16 +313,16 @@ def test_fan_at_1ms_with_a_measured_blur_on_an_unseen_rig():
     """The same fan with the blur in the rig, 5 % above the simulator's (as ``lightflow rig
     blur`` measures it: within 1-6 %), so that sweeps shorter than the line count.
 
-    Measured here: median 3.3 mm, signed -1.7 mm, coverage 0.528 (with the depth from the
-    intervals where the lines move too little for a flow; without it 3.8 mm, -2.7 mm, 0.405;
+    Measured here: median 2.0 mm, signed -1.1 mm, coverage 0.528 (with the depth from the
+    intervals; without it 3.8 mm, -2.7 mm, 0.405;
     the true blur then: 2.5 mm, +1.0 mm, 0.427; 5 % below it: 5.3 mm, +5.2 mm, 0.442).
     """
     rig = _generated_rig(((-0.25, 0.0, 0.35), 35, 1200, 36), ((0.42, 0.02, -0.20), 16, 1500, 16),
                          crop=(640, 640, 960, 280))  # fmt: skip
     # the simulator's blur: sigma^2 = 0.36 + 0.36 m^2 (camera px^2, m the magnification)
     s = _signed_scores(rig.with_blur([(0.378, 0.378)] * 2), "fan", 0.001)
-    assert s["median_mm"] <= 4.5
-    assert abs(s["signed_mm"]) <= 3.0
+    assert s["median_mm"] <= 3.0
+    assert abs(s["signed_mm"]) <= 2.5
     assert s["coverage"] >= 0.48
     assert s["off_fraction"] <= 0.02
 
@@ -446,8 +446,9 @@ def test_a_webcam_fan_gets_its_gamma_from_the_wall_behind():
     still lines between the first frames and linearises from the second frame on.
 
     Measured (frames 1-2 of 3, the fan at 1 ms before a wall, camera gamma 2.2): gamma
-    2.16 from the wall; median 5.0 mm, signed +0.4 mm, none off the object; the same
-    frames read as linear: 248 mm, +248 mm.
+    2.16 from the wall; median 1.9 mm, signed +0.3 mm, 0.7 % off the object; the same
+    frames read as linear: 33 mm, +33 mm (248 mm before the depth from the line
+    intervals, which a camera's gamma does not bias, took part).
     """
     from lightflow.drivers.sim.synthetic import SensorModel
 
@@ -478,4 +479,4 @@ def test_a_webcam_fan_gets_its_gamma_from_the_wall_behind():
     assert pipe.gamma_source == "still lines" and pipe.camera_gamma == pytest.approx(2.2, abs=0.12)
     assert median <= 8.0 and abs(signed) <= 4.0 and off <= 0.02
     _, median_linear, signed_linear, _ = scores(PipelineConfig(stride=STRIDE, camera_gamma=1.0))
-    assert signed_linear > 40.0
+    assert signed_linear > 20.0

@@ -115,7 +115,33 @@ class IntervalModel:
             self.c[p] = (project_to_projector(proj, (z + dz) * ray)[..., 0]
                          - project_to_projector(proj, (z - dz) * ray)[..., 0]) / (2 * dz[..., 0])
 
-    def correct(self, intervals: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def curved(self, intervals: np.ndarray) -> np.ndarray:
+        """Per grid cell, whether the surface bends over the sparse pattern's reach.
+
+        There the sparse pattern's measured interval (the mean spacing to its
+        neighbours) is biased, and with it a depth from the intervals.
+
+        Parameters
+        ----------
+        intervals : numpy.ndarray
+            ``(2, h, w)`` measured line intervals (camera px).
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(h, w)`` bool.
+        """
+        # which pattern is the sparse one, from a quarter of the cells (that is enough)
+        sample = intervals[:, ::2, ::2]
+        both = np.isfinite(sample).all(axis=0)
+        if np.count_nonzero(both) < 16:
+            return np.zeros(intervals.shape[1:], bool)
+        med = np.median(sample[:, both], axis=1)
+        sparse = int(med[1] > med[0])
+        return self._curved(intervals, sparse, float(med[sparse]))
+
+    def correct(self, intervals: np.ndarray, depth: np.ndarray,
+                curved: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """Per grid cell, the sparse pattern's ``log(measured / predicted)`` interval.
 
         Parameters
@@ -124,6 +150,8 @@ class IntervalModel:
             ``(2, h, w)`` measured line intervals (camera px).
         depth : numpy.ndarray
             ``(h, w)`` depth estimate (m) to evaluate the geometry at.
+        curved : numpy.ndarray, optional
+            :meth:`curved` of ``intervals``, when the caller has it already.
 
         Returns
         -------
@@ -133,14 +161,8 @@ class IntervalModel:
             measurement stands (agreement, no prediction, or the dense pattern).
         """
         out = np.zeros((2, *depth.shape), np.float32)
-        # which pattern is the sparse one, from a quarter of the cells (that is enough)
-        sample = intervals[:, ::2, ::2]
-        both = np.isfinite(sample).all(axis=0)
-        if np.count_nonzero(both) < 16:
-            return out
-        med = np.median(sample[:, both], axis=1)
-        sparse = int(med[1] > med[0])
-        curved = self._curved(intervals, sparse, float(med[sparse]))
+        if curved is None:
+            curved = self.curved(intervals)
         if not curved.any():
             return out  # a plane (or a gentle curve): every measured interval stands
         lg, have = self.disagreement(intervals, np.where(curved, depth, np.nan))

@@ -403,7 +403,8 @@ class DepthPipeline:
             # a flow is L / B, and a sweep shorter than the line is read against the
             # line's width, B over the pitch: the sweeps are read again with the
             # predicted interval
-            fix = self.intervals.correct(grids[:, 1], z_raw)
+            curved = self.intervals.curved(grids[:, 1])
+            fix = self.intervals.correct(grids[:, 1], z_raw, curved)
             if fix.any():
                 fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)
                 raw = fm.log_ratio  # same cells, same causes
@@ -430,7 +431,7 @@ class DepthPipeline:
         std_grid[~np.isfinite(depth_grid)] = np.nan
         if self.intervals is not None and cfg.interval_depth:
             slow = fm.swept & ((why == cz.STATIC) | (why == cz.UNCERTAIN))
-            self._depth_from_intervals(grids[:, 1], fm.swept, slow, sigma_f, depth_grid,
+            self._depth_from_intervals(grids[:, 1], fm.swept, slow, curved, sigma_f, depth_grid,
                                        std_grid)  # fmt: skip
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
@@ -461,16 +462,20 @@ class DepthPipeline:
             intervals_grid=grids[:, 1],
         )
 
-    def _depth_from_intervals(self, intervals, swept, slow, sigma, depth_grid,
+    def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
                               std_grid) -> None:  # fmt: skip
-        """Fill ``depth_grid`` and ``std_grid`` (in place) where lines move too little for a flow.
+        """Fill ``depth_grid`` and ``std_grid`` (in place) where lines move too little for a
+        flow, and average it with the flow's depth where the surface does not bend.
 
         ``swept``: the cells whose lines move (both patterns' bands wider than a still
         line); ``slow``: those of them that move too little for a flow (cause static or
         uncertain).  The depth the two line intervals give (:meth:`IntervalModel.depth`)
         is smoothed over the swept cells like the log flow ratio (the cells with a flow
         too: against them the outliers show), and kept where it is predicted within
-        ``max_depth_std``.
+        ``max_depth_std``.  Where a cell has both depths, they are averaged by their
+        predicted precision, unless the surface bends there (``curved``, from
+        :meth:`IntervalModel.curved`): a ball's measured intervals are biased, its
+        interval depth with them.
         """
         if np.count_nonzero(slow & ~np.isfinite(depth_grid)) < MIN_SLOW_SHARE * slow.size:
             return  # a board: a few scattered cells are not worth a pass over the frame
@@ -492,8 +497,14 @@ class DepthPipeline:
                                           self.config.flow.fill_fraction, var)  # fmt: skip
             z = np.exp(log_z)
             std = z * np.sqrt(var)
-            fill = (~np.isfinite(depth_grid) & (std <= self.config.max_depth_std * z)
-                    & (z >= self.config.depth_range.near) & (z <= self.config.depth_range.far))
+            ok = ((std <= self.config.max_depth_std * z)
+                  & (z >= self.config.depth_range.near) & (z <= self.config.depth_range.far))
+            fill = ~np.isfinite(depth_grid) & ok
+            both = np.isfinite(depth_grid) & ok & swept & ~curved
+            w_flow = 1.0 / np.square(std_grid[both])
+            w_int = 1.0 / np.square(std[both])
+            depth_grid[both] = (depth_grid[both] * w_flow + z[both] * w_int) / (w_flow + w_int)
+            std_grid[both] = 1.0 / np.sqrt(w_flow + w_int)
         depth_grid[fill] = z[fill]
         std_grid[fill] = std[fill]
 
