@@ -70,8 +70,10 @@ import numpy as np
 from .bands import (
     BAND_OVERLAP,
     BAND_PERIODIC,
+    BAND_VALID,
     F_CENTRE,
     F_FLOOR,
+    F_HEIGHT,
     F_INTERVAL,
     F_LENGTH,
     F_VALID,
@@ -83,8 +85,8 @@ from .threads import run_rows
 
 #: output fields of :func:`measure_stretch` / :func:`measure_stretches`
 (O_SWEEP, O_FRACTION, O_TURNS, O_PULSE, O_STEP, O_MEAN, O_STD, O_NOISE, O_SHAPE,
- O_CODE) = range(10)  # fmt: skip
-N_OUT = 10
+ O_CODE, O_LEVEL) = range(11)  # fmt: skip
+N_OUT = 11
 #: ``O_CODE`` values: measured, or why not
 OV_MEASURED = 1.0
 OV_SHORT = -1.0  # the stretch spans fewer than min_periods intervals
@@ -434,7 +436,8 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, pa
         ``(N_OUT,)``: ``O_SWEEP`` (L, camera px, NaN unless measured), ``O_FRACTION``
         (``f``), ``O_TURNS`` (``n``), ``O_PULSE`` (a pulse centre, row position),
         ``O_STEP`` (``h``), ``O_MEAN`` (``C_0``), ``O_STD`` (predicted std of ``L``),
-        ``O_NOISE`` (residual rms), ``O_SHAPE`` (relative misfit), ``O_CODE``.
+        ``O_NOISE`` (residual rms), ``O_SHAPE`` (relative misfit), ``O_CODE``,
+        ``O_LEVEL`` (``(C_0 - bg) / h``, the background's reading of ``L / B``).
     """
     for k in range(N_OUT):
         out[k] = np.nan
@@ -486,6 +489,8 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, pa
     std_h = s_c * math.sqrt(cov[0])
     out[O_FRACTION] = f
     out[O_STEP] = h
+    if np.isfinite(bg):
+        out[O_LEVEL] = (coef[0] - bg) / h
     # misfit of the harmonics to the pulse model, relative to their rms (cov[3]); in
     # absolute terms per coefficient part it may reach the noise (2 s_c) plus a share
     # of the signal's own harmonics (a model error the noise does not explain)
@@ -521,7 +526,7 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, pa
     margin = params[_P_MARGIN]
     reach = 1.0 - margin if parity >= 0 else 0.5 - margin
     if np.isfinite(bg):
-        u_dc = (coef[0] - bg) / h
+        u_dc = out[O_LEVEL]
         # spread of u_dc: background error and the step's own error, in intervals
         bg_sd = params[_P_BGSTD]
         if bg_err > 0.0:
@@ -659,6 +664,13 @@ MIN_RUN_BANDS = 3
 #: how far (line intervals) beyond each end of a run its background is looked for, as the
 #: band detector looks for the floor (:data:`~lightflow.app.core.bands.FLOOR_GAPS` gaps)
 FLOOR_REACH = FLOOR_GAPS
+#: a run whose floor reads ``L / B`` above this (``O_LEVEL``) is a pulse train of lines swept
+#: past their neighbours even when the sweep is not measured (half an interval above the
+#: touching bands' highest reading, 1, beyond the floor's error of a few tenths)
+PULSE_TRAIN_LEVEL = 1.5
+#: bands past a run's ends continue its pulse train when their spacing, length and height
+#: are the run's within this share (a band as long but not a pulse is twice as high or more)
+CONTINUATION_TOLERANCE = 0.3
 #: largest deviation of a run's centre spacings from their median (share of it): the
 #: pulses of overlapping bands are exactly periodic on a smooth surface
 RUN_SPACING_TOLERANCE = 0.1
@@ -809,7 +821,11 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     pulses, a fraction of the interval.  Touching bands (``n = 0``) must also agree
     with their own widths over the interval (a coarse ``L / B``).  Measured runs get
     the sweep as their length, the run's spacing as their interval and
-    ``BAND_PERIODIC``.
+    ``BAND_PERIODIC``.  Where a run is a train of pulses (measured with ``n >= 1``, or
+    read by its floor as past :data:`PULSE_TRAIN_LEVEL` intervals), the valid bands
+    that continue it past its ends (same spacing, length and height) are more of its
+    pulses, too far from a clean gap for the detector's floor test: they become
+    ``BAND_OVERLAP`` rather than give a sweep whole intervals short.
 
     Parameters
     ----------
@@ -886,6 +902,15 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
         out[past[keep]] = alone[keep]
     done = np.flatnonzero(out[:, O_CODE] == OV_MEASURED)
     _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B)
+    # past the ends of a run swept past its neighbours, bands that continue its pulse train
+    # are more of its pulses that the detector took for bands (no clean gap showed the
+    # floor near them): rejected, not measured whole intervals short
+    # (runs read as past one interval and a half by the floor count too: their fraction may
+    # not be measurable, but no touching bands are that bright over their floor)
+    trains = np.flatnonzero(((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
+                            | (out[:, O_LEVEL] > PULSE_TRAIN_LEVEL))  # fmt: skip
+    _reject_continuations(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
+                          CONTINUATION_TOLERANCE)  # fmt: skip
     return len(done)
 
 
@@ -898,3 +923,36 @@ def _mark_runs(bands, pat, runs, done, sweep, B):
             bands[p, r, k, F_LENGTH] = sweep[q]
             bands[p, r, k, F_INTERVAL] = B[q]
             bands[p, r, k, F_VALID] = BAND_PERIODIC
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _reject_continuations(bands, counts, pat, runs, done, B, pulse, tol):
+    """Outwards from each end of the runs ``done``: the bands that continue their pulse
+    train become ``BAND_OVERLAP`` (valid ones; the walk stops at the first that does not).
+
+    A band continues it when it lies one interval ``B[q]`` (within ``tol`` of it) from the
+    previous one and its length and height are the run's pulses' (``pulse[q]`` long, the
+    median height of the run's bands, both within ``tol``): a band that only happens to
+    be as long is ``L / (f B)`` (at least twice) as high.
+    """
+    for q in done:
+        p, r = pat[q], runs[q, 0]
+        n = runs[q, 2] - runs[q, 1] + 1
+        heights = np.empty(n)
+        for i in range(n):
+            heights[i] = bands[p, r, runs[q, 1] + i, F_HEIGHT]
+        height = _median(heights)
+        for side in range(2):
+            step = 1 if side else -1
+            k = runs[q, 2] + 1 if side else runs[q, 1] - 1
+            prev = bands[p, r, k - step, F_CENTRE]
+            while 0 <= k < counts[p, r]:
+                b = bands[p, r, k]
+                if not (abs(abs(b[F_CENTRE] - prev) - B[q]) <= tol * B[q]
+                        and abs(b[F_LENGTH] - pulse[q]) <= tol * pulse[q]
+                        and abs(b[F_HEIGHT] - height) <= tol * height):  # fmt: skip
+                    break
+                if b[F_VALID] == BAND_VALID:
+                    b[F_VALID] = BAND_OVERLAP
+                prev = b[F_CENTRE]
+                k += step
