@@ -664,10 +664,6 @@ MIN_RUN_BANDS = 3
 #: how far (line intervals) beyond each end of a run its background is looked for, as the
 #: band detector looks for the floor (:data:`~lightflow.app.core.bands.FLOOR_GAPS` gaps)
 FLOOR_REACH = FLOOR_GAPS
-#: a run whose floor reads ``L / B`` above this (``O_LEVEL``) is a pulse train of lines swept
-#: past their neighbours even when the sweep is not measured (half an interval above the
-#: touching bands' highest reading, 1, beyond the floor's error of a few tenths)
-PULSE_TRAIN_LEVEL = 1.5
 #: bands past a run's ends continue its pulse train when their spacing, length and height
 #: are the run's within this share (a band as long but not a pulse is twice as high or more)
 CONTINUATION_TOLERANCE = 0.3
@@ -821,8 +817,8 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     pulses, a fraction of the interval.  Touching bands (``n = 0``) must also agree
     with their own widths over the interval (a coarse ``L / B``).  Measured runs get
     the sweep as their length, the run's spacing as their interval and
-    ``BAND_PERIODIC``.  Where a run is a train of pulses (measured with ``n >= 1``, or
-    read by its floor as past :data:`PULSE_TRAIN_LEVEL` intervals), the valid bands
+    ``BAND_PERIODIC``.  Where a run is a train of pulses (measured with ``n >= 1``), the
+    valid bands
     that continue it past its ends (same spacing, length and height) are more of its
     pulses, too far from a clean gap for the detector's floor test: they become
     ``BAND_OVERLAP`` rather than give a sweep whole intervals short.
@@ -905,10 +901,10 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     # past the ends of a run swept past its neighbours, bands that continue its pulse train
     # are more of its pulses that the detector took for bands (no clean gap showed the
     # floor near them): rejected, not measured whole intervals short
-    # (runs read as past one interval and a half by the floor count too: their fraction may
-    # not be measurable, but no touching bands are that bright over their floor)
-    trains = np.flatnonzero(((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
-                            | (out[:, O_LEVEL] > PULSE_TRAIN_LEVEL))  # fmt: skip
+    # (only runs measured so: a run of touching bands has the same spacing, lengths and
+    # heights, and the floor's reading alone, O_LEVEL, is off by more than an interval
+    # often enough to take one for a train)
+    trains = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
     _reject_continuations(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
                           CONTINUATION_TOLERANCE)  # fmt: skip
     return len(done)
