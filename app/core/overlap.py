@@ -810,17 +810,17 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     periodic stretch (from half an interval before the first centre to half an
     interval after the last): :func:`measure_stretch` fits its sweep.  The integer
     part ``n`` of ``L / B`` comes from the floor the detector found under the bands
-    (``F_FLOOR``, the lowest gap a few intervals to either side), as uncertain as the
-    run's bands' floors differ from each other (its two sides, or an end and a middle
-    with no clean gap in reach, disagree: then no ``n`` is resolved).  Bands swept past
-    their neighbours (``n >= 1``) have no other reference: their widths read the
-    pulses, a fraction of the interval.  Touching bands (``n = 0``) must also agree
-    with their own widths over the interval (a coarse ``L / B``).  Measured runs get
-    the sweep as their length, the run's spacing as their interval and
-    ``BAND_PERIODIC``.  Where a run is a train of pulses (measured with ``n >= 1``), the
-    valid bands
-    that continue it past its ends (same spacing, length and height) are more of its
-    pulses, too far from a clean gap for the detector's floor test: they become
+    (``F_FLOOR``, the lowest gap a few intervals to either side).  Touching bands
+    (``n = 0``) must also agree with their own widths over the interval (a coarse
+    ``L / B``).  Bands swept past their neighbours (``n >= 1``) have no other
+    reference (their widths read the pulses, a fraction of the interval): for them the
+    floor is as uncertain as the run's bands' floors and the lowest levels on its two
+    sides differ (a step of the background, another surface: then no ``n`` is
+    resolved).  Measured runs get the sweep as their length, the run's spacing as
+    their interval and ``BAND_PERIODIC``.  Where a run is a train of pulses (measured
+    with ``n >= 1``), the valid bands that continue it past its ends (same spacing,
+    length and height) are more of its pulses, too far from a clean gap for the
+    detector's floor test: they become
     ``BAND_OVERLAP`` rather than give a sweep whole intervals short.
 
     Parameters
@@ -874,8 +874,9 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
     lo, hi = prep[:, 1].astype(np.int64), prep[:, 2].astype(np.int64)
     w = line_px[pat] * mag
-    # the floor's uncertainty: how much the floors under the run's bands, and the lowest
-    # levels on its two sides, differ (a step of the background, another surface)
+    # the floor's uncertainty when it is the only reference: how much the floors under the
+    # run's bands, and the lowest levels on its two sides, differ (a step of the
+    # background, another surface)
     # (a side that stays above half-way from the floor to the run's own lowest level shows
     # no floor: its lines overlap too)
     levels = np.empty((len(B), 3))
@@ -884,11 +885,13 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     both = (levels[:, 0] < half) & (levels[:, 2] < half)
     bg_err = np.where(both, np.maximum(prep[:, 5], np.abs(levels[:, 0] - levels[:, 2])),
                       prep[:, 5])  # fmt: skip
-    # touching bands (n = 0): the floor and the bands' widths over the interval agree
+    # touching bands (n = 0): the floor and the bands' widths over the interval agree (two
+    # references: the floor's uncertainty is the parameters')
     out = measure_stretches(signals, row, lo, hi, B, w, sigma, bg=prep[:, 3], prior=prep[:, 4],
-                            params=params, bg_err=bg_err)  # fmt: skip
+                            params=params)  # fmt: skip
     # bands swept past their neighbours: their widths read the pulses (a fraction of the
-    # interval) and contradict the floor, which alone gives n (n = 0 is left to the above)
+    # interval) and contradict the floor, which alone gives n (n = 0 is left to the above),
+    # as uncertain as it is
     past = np.flatnonzero(out[:, O_CODE] == OV_AMBIGUOUS)
     if len(past):
         alone = measure_stretches(signals, row[past], lo[past], hi[past], B[past], w[past],
