@@ -70,11 +70,14 @@ import numpy as np
 from .bands import (
     BAND_OVERLAP,
     BAND_PERIODIC,
+    BAND_VALID,
     F_CENTRE,
     F_FLOOR,
+    F_HEIGHT,
     F_INTERVAL,
     F_LENGTH,
     F_VALID,
+    FLOOR_GAPS,
     N_FIELDS,
     row_signals,
 )
@@ -82,8 +85,8 @@ from .threads import run_rows
 
 #: output fields of :func:`measure_stretch` / :func:`measure_stretches`
 (O_SWEEP, O_FRACTION, O_TURNS, O_PULSE, O_STEP, O_MEAN, O_STD, O_NOISE, O_SHAPE,
- O_CODE) = range(10)  # fmt: skip
-N_OUT = 10
+ O_CODE, O_LEVEL) = range(11)  # fmt: skip
+N_OUT = 11
 #: ``O_CODE`` values: measured, or why not
 OV_MEASURED = 1.0
 OV_SHORT = -1.0  # the stretch spans fewer than min_periods intervals
@@ -401,7 +404,7 @@ def _pulse_fit(coef, M, B, K, hfx):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out):
+def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, params, out):
     """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
 
     Parameters
@@ -420,6 +423,9 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, ou
         interval all along.
     bg : float
         Background under the bands (signal units), NaN if unknown.
+    bg_err : float
+        Uncertainty of ``bg`` known for this stretch (signal units), added to
+        ``bg_std`` (NaN or 0: none).
     prior : float
         A coarse ``L / B`` (intervals), NaN if none.
     centre : float
@@ -430,7 +436,8 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, ou
         ``(N_OUT,)``: ``O_SWEEP`` (L, camera px, NaN unless measured), ``O_FRACTION``
         (``f``), ``O_TURNS`` (``n``), ``O_PULSE`` (a pulse centre, row position),
         ``O_STEP`` (``h``), ``O_MEAN`` (``C_0``), ``O_STD`` (predicted std of ``L``),
-        ``O_NOISE`` (residual rms), ``O_SHAPE`` (relative misfit), ``O_CODE``.
+        ``O_NOISE`` (residual rms), ``O_SHAPE`` (relative misfit), ``O_CODE``,
+        ``O_LEVEL`` (``(C_0 - bg) / h``, the background's reading of ``L / B``).
     """
     for k in range(N_OUT):
         out[k] = np.nan
@@ -482,6 +489,8 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, ou
     std_h = s_c * math.sqrt(cov[0])
     out[O_FRACTION] = f
     out[O_STEP] = h
+    if np.isfinite(bg):
+        out[O_LEVEL] = (coef[0] - bg) / h
     # misfit of the harmonics to the pulse model, relative to their rms (cov[3]); in
     # absolute terms per coefficient part it may reach the noise (2 s_c) plus a share
     # of the signal's own harmonics (a model error the noise does not explain)
@@ -517,9 +526,12 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, ou
     margin = params[_P_MARGIN]
     reach = 1.0 - margin if parity >= 0 else 0.5 - margin
     if np.isfinite(bg):
-        u_dc = (coef[0] - bg) / h
+        u_dc = out[O_LEVEL]
         # spread of u_dc: background error and the step's own error, in intervals
-        sd = math.hypot(params[_P_BGSTD] / h, u_dc * std_h / h)
+        bg_sd = params[_P_BGSTD]
+        if bg_err > 0.0:
+            bg_sd = math.hypot(bg_sd, bg_err)
+        sd = math.hypot(bg_sd / h, u_dc * std_h / h)
         span = max(reach - 2.0 * sd, 0.0)
         lo_n = max(lo_n, u_dc - f - span)
         hi_n = min(hi_n, u_dc - f + span)
@@ -555,15 +567,16 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, ou
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _measure_all(rows, row, lo, hi, B, chirp, w, sigma, bg, prior, centre, params, out, k0, k1):
+def _measure_all(rows, row, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, params, out,
+                 k0, k1):  # fmt: skip
     for k in range(k0, k1):
         measure_stretch(rows[row[k]], lo[k], hi[k], B[k], chirp[k], w[k], sigma[k], bg[k],
-                        prior[k], centre[k], params, out[k])  # fmt: skip
+                        bg_err[k], prior[k], centre[k], params, out[k])  # fmt: skip
 
 
 def measure_stretches(
     rows, row, lo, hi, B, w, sigma, bg=None, prior=None, centre=None, chirp=None,
-    params: OverlapParams = OverlapParams(),
+    params: OverlapParams = OverlapParams(), bg_err=None,
 ) -> np.ndarray:  # fmt: skip
     """:func:`measure_stretch` over many stretches (vectorised inputs, one per stretch).
 
@@ -580,6 +593,8 @@ def measure_stretches(
     chirp : numpy.ndarray, float or None
         Relative change of the interval per pixel (None: constant intervals).
     params : OverlapParams
+    bg_err : numpy.ndarray, float or None
+        Per stretch, an uncertainty of ``bg`` beyond ``params.bg_std`` (None: none).
 
     Returns
     -------
@@ -599,7 +614,8 @@ def measure_stretches(
     hi = np.asarray(hi, np.int64)
     # stretches are independent: a band of them per thread (the pipeline's shared pool)
     run_rows(_measure_all, n, rows, row, lo, hi, vec(B), vec(chirp, 0.0), vec(w), vec(sigma),
-             vec(bg), vec(prior), vec(centre), params.as_array(), out)  # fmt: skip
+             vec(bg), vec(bg_err, 0.0), vec(prior), vec(centre), params.as_array(),
+             out)  # fmt: skip
     return out
 
 
@@ -645,6 +661,12 @@ def refine_interval(x, lo: int, hi: int, B0: float, rel_range: float = 0.1,
 #: fewest neighbouring overlap-rejected bands of a row measured as one periodic stretch
 #: (the stretch spans one interval more than their centres: three bands, three intervals)
 MIN_RUN_BANDS = 3
+#: how far (line intervals) beyond each end of a run its background is looked for, as the
+#: band detector looks for the floor (:data:`~lightflow.app.core.bands.FLOOR_GAPS` gaps)
+FLOOR_REACH = FLOOR_GAPS
+#: bands past a run's ends continue its pulse train when their spacing, length and height
+#: are the run's within this share (a band as long but not a pulse is twice as high or more)
+CONTINUATION_TOLERANCE = 0.3
 #: largest deviation of a run's centre spacings from their median (share of it): the
 #: pulses of overlapping bands are exactly periodic on a smooth surface
 RUN_SPACING_TOLERANCE = 0.1
@@ -697,8 +719,12 @@ def _median(values):
 
 @nb.njit(cache=True, error_model="numpy")
 def _prepare_runs(bands, runs, m, tol, width, out):
-    """Per run of one pattern: ``out[q] = (B, lo, hi, floor, width over B)``, or NaN ``B``
-    when its centre spacings disagree (more than ``tol`` of their median) with each other."""
+    """Per run of one pattern: ``out[q] = (B, lo, hi, floor, width over B, floor spread)``, or
+    NaN ``B`` when its centre spacings disagree (more than ``tol`` of their median) with each
+    other.  The floor is the lowest of the bands' floors, its spread the highest less the
+    lowest: the bands' floors are the lowest gaps a few intervals to either side, so they
+    differ where the two sides of the run (or an end of it and a stretch with no clean gap)
+    disagree about the background under it."""
     for q in range(m):
         r, k0, k1 = runs[q, 0], runs[q, 1], runs[q, 2]
         n = k1 - k0
@@ -717,15 +743,44 @@ def _prepare_runs(bands, runs, m, tol, width, out):
             continue
         lengths = np.empty(n + 1)
         floor = np.inf
+        top = -np.inf
         for i in range(n + 1):
             lengths[i] = bands[r, k0 + i, F_LENGTH]
             floor = min(floor, bands[r, k0 + i, F_FLOOR])
+            top = max(top, bands[r, k0 + i, F_FLOOR])
         out[q, 0] = b
         out[q, 1] = max(0.0, math.floor(bands[r, k0, F_CENTRE] - 0.5 * b))
         out[q, 2] = min(float(width), math.ceil(bands[r, k1, F_CENTRE] + 0.5 * b))
         # NaN floor or width: that reference is missing (then the run stays rejected)
         out[q, 3] = floor if np.isfinite(floor) else np.nan
         out[q, 4] = _median(lengths) / b
+        out[q, 5] = top - floor if np.isfinite(floor) else np.nan
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _lowest_levels(signals, row, lo, hi, reach, out):
+    """Lowest mean of five neighbouring samples within ``reach[s]`` before, inside and
+    within ``reach[s]`` after each stretch ``lo[s]:hi[s]`` of ``signals[row[s]]``
+    (``out[s]``, NaN where the row ends first)."""
+    width = signals.shape[1]
+    for s in range(row.shape[0]):
+        x = signals[row[s]]
+        for side in range(3):
+            a = (int(lo[s] - reach[s]), int(lo[s]), int(hi[s]))[side]
+            b = (int(lo[s]), int(hi[s]), int(hi[s] + reach[s]))[side]
+            a = max(a, 0)
+            b = min(b, width)
+            best = np.nan
+            if b - a >= 5:
+                run = 0.0
+                for i in range(a, a + 5):
+                    run += x[i]
+                best = run
+                for i in range(a + 5, b):
+                    run += x[i] - x[i - 5]
+                    best = min(best, run)
+                best /= 5.0
+            out[s, side] = best
 
 
 def warm_up(params: OverlapParams | None = None) -> None:
@@ -754,12 +809,19 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     of at least :data:`MIN_RUN_BANDS` of them in one row, evenly spaced, is one
     periodic stretch (from half an interval before the first centre to half an
     interval after the last): :func:`measure_stretch` fits its sweep.  The integer
-    part of ``L / B`` needs two references that must agree: the floor the detector
-    found under the bands (``F_FLOOR``, the lowest gap a few intervals away) and the
-    bands' own widths over the interval (a coarse ``L / B``: right for bands that
-    touch, a fraction for the pulses of lines swept past their neighbours, which the
-    floor then contradicts: such runs stay rejected).  Measured runs get the sweep
-    as their length, the run's spacing as their interval and ``BAND_PERIODIC``.
+    part ``n`` of ``L / B`` comes from the floor the detector found under the bands
+    (``F_FLOOR``, the lowest gap a few intervals to either side).  Touching bands
+    (``n = 0``) must also agree with their own widths over the interval (a coarse
+    ``L / B``).  Bands swept past their neighbours (``n >= 1``) have no other
+    reference (their widths read the pulses, a fraction of the interval): for them the
+    floor is as uncertain as the run's bands' floors and the lowest levels on its two
+    sides differ (a step of the background, another surface: then no ``n`` is
+    resolved).  Measured runs get the sweep as their length, the run's spacing as
+    their interval and ``BAND_PERIODIC``.  Where a run is a train of pulses (measured
+    with ``n >= 1``), the valid bands that continue it past its ends (same spacing,
+    length and height) are more of its pulses, too far from a clean gap for the
+    detector's floor test: they become
+    ``BAND_OVERLAP`` rather than give a sweep whole intervals short.
 
     Parameters
     ----------
@@ -791,7 +853,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
         m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs)
         if m == 0:
             continue
-        prep = np.empty((m, 5))
+        prep = np.empty((m, 6))
         _prepare_runs(bands[p], runs, m, RUN_SPACING_TOLERANCE, width, prep)
         ok = np.isfinite(prep[:, 0]) & np.isfinite(prep[:, 3]) & np.isfinite(prep[:, 4])
         if ok.any():
@@ -809,12 +871,45 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     B = prep[:, 0]
     mag = B / pitch[pat]
     sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
-    out = measure_stretches(signals, 2 * np.searchsorted(rows_used, runs[:, 0]) + pat,
-                            prep[:, 1].astype(np.int64), prep[:, 2].astype(np.int64), B,
-                            line_px[pat] * mag, sigma, bg=prep[:, 3], prior=prep[:, 4],
+    row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
+    lo, hi = prep[:, 1].astype(np.int64), prep[:, 2].astype(np.int64)
+    w = line_px[pat] * mag
+    # the floor's uncertainty when it is the only reference: how much the floors under the
+    # run's bands, and the lowest levels on its two sides, differ (a step of the
+    # background, another surface)
+    # (a side that stays above half-way from the floor to the run's own lowest level shows
+    # no floor: its lines overlap too)
+    levels = np.empty((len(B), 3))
+    _lowest_levels(signals, row, lo, hi, FLOOR_REACH * B, levels)
+    half = 0.5 * (levels[:, 1] + prep[:, 3])
+    both = (levels[:, 0] < half) & (levels[:, 2] < half)
+    bg_err = np.where(both, np.maximum(prep[:, 5], np.abs(levels[:, 0] - levels[:, 2])),
+                      prep[:, 5])  # fmt: skip
+    # touching bands (n = 0): the floor and the bands' widths over the interval agree (two
+    # references: the floor's uncertainty is the parameters')
+    out = measure_stretches(signals, row, lo, hi, B, w, sigma, bg=prep[:, 3], prior=prep[:, 4],
                             params=params)  # fmt: skip
+    # bands swept past their neighbours: their widths read the pulses (a fraction of the
+    # interval) and contradict the floor, which alone gives n (n = 0 is left to the above),
+    # as uncertain as it is
+    past = np.flatnonzero(out[:, O_CODE] == OV_AMBIGUOUS)
+    if len(past):
+        alone = measure_stretches(signals, row[past], lo[past], hi[past], B[past], w[past],
+                                  sigma[past], bg=prep[past, 3], params=params,
+                                  bg_err=bg_err[past])  # fmt: skip
+        keep = (alone[:, O_CODE] == OV_MEASURED) & (alone[:, O_TURNS] >= 1)
+        out[past[keep]] = alone[keep]
     done = np.flatnonzero(out[:, O_CODE] == OV_MEASURED)
     _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B)
+    # past the ends of a run swept past its neighbours, bands that continue its pulse train
+    # are more of its pulses that the detector took for bands (no clean gap showed the
+    # floor near them): rejected, not measured whole intervals short
+    # (only runs measured so: a run of touching bands has the same spacing, lengths and
+    # heights, and the floor's reading alone, O_LEVEL, is off by more than an interval
+    # often enough to take one for a train)
+    trains = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
+    _reject_continuations(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
+                          CONTINUATION_TOLERANCE)  # fmt: skip
     return len(done)
 
 
@@ -827,3 +922,36 @@ def _mark_runs(bands, pat, runs, done, sweep, B):
             bands[p, r, k, F_LENGTH] = sweep[q]
             bands[p, r, k, F_INTERVAL] = B[q]
             bands[p, r, k, F_VALID] = BAND_PERIODIC
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _reject_continuations(bands, counts, pat, runs, done, B, pulse, tol):
+    """Outwards from each end of the runs ``done``: the bands that continue their pulse
+    train become ``BAND_OVERLAP`` (valid ones; the walk stops at the first that does not).
+
+    A band continues it when it lies one interval ``B[q]`` (within ``tol`` of it) from the
+    previous one and its length and height are the run's pulses' (``pulse[q]`` long, the
+    median height of the run's bands, both within ``tol``): a band that only happens to
+    be as long is ``L / (f B)`` (at least twice) as high.
+    """
+    for q in done:
+        p, r = pat[q], runs[q, 0]
+        n = runs[q, 2] - runs[q, 1] + 1
+        heights = np.empty(n)
+        for i in range(n):
+            heights[i] = bands[p, r, runs[q, 1] + i, F_HEIGHT]
+        height = _median(heights)
+        for side in range(2):
+            step = 1 if side else -1
+            k = runs[q, 2] + 1 if side else runs[q, 1] - 1
+            prev = bands[p, r, k - step, F_CENTRE]
+            while 0 <= k < counts[p, r]:
+                b = bands[p, r, k]
+                if not (abs(abs(b[F_CENTRE] - prev) - B[q]) <= tol * B[q]
+                        and abs(b[F_LENGTH] - pulse[q]) <= tol * pulse[q]
+                        and abs(b[F_HEIGHT] - height) <= tol * height):  # fmt: skip
+                    break
+                if b[F_VALID] == BAND_VALID:
+                    b[F_VALID] = BAND_OVERLAP
+                prev = b[F_CENTRE]
+                k += step
