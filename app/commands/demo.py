@@ -267,7 +267,8 @@ def cpu_seconds() -> float:
 class Helper:
     """The helper process: half of the band detector's kernels, the tables, the renderer.
 
-    Last, the kernels of overlapping bands (:func:`lightflow.app.core.overlap.warm_up`),
+    Last, the kernels of the depth from the line intervals and of overlapping bands
+    (:func:`lightflow.app.core.intervals.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
     which this process would otherwise compile at the end of the pipeline's warm-up.
 
     It compiles the detector's ``sliding_mid`` while this process compiles
@@ -305,7 +306,8 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
-        "from lightflow.app.core import overlap\n"
+        "from lightflow.app.core import intervals, overlap\n"
+        "intervals.warm_up()\n"
         "overlap.warm_up()\n"
         "print('overlap', flush=True)\n"
     )
@@ -608,10 +610,10 @@ def run(args: argparse.Namespace) -> int:
         with CompileProgress("      pipeline") as compiling:
             try:
                 pipeline = DepthPipeline(rig, config, lut=lut)
-                pipeline.warm_up(overlap=helper is None)
+                pipeline.warm_up(optional=helper is None)
                 if helper is not None:
                     helper.overlap.wait()  # compiled there meanwhile: loaded from the cache
-                    pipeline.warm_up_overlap()
+                    pipeline.warm_up_optional()
             finally:
                 done.set()
                 wake.set()

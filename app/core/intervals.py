@@ -352,6 +352,20 @@ def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, den
             have[s, i, j] = 1.0
 
 
+def warm_up() -> None:
+    """Compile (or load) :meth:`IntervalModel.depth`'s kernel with a frame's argument types.
+
+    It runs only where lines move too little for a flow, so a test image of
+    straight stripes never reaches it (a helper process may call this instead).
+    """
+    grids = np.full((2, 2, 4, 4), 20.0)  # the pipeline passes a field of its grids: a view
+    z = np.empty((4, 4), np.float32)
+    sens = np.empty((4, 4), np.float32)
+    tab = np.ones((2, 2, 2, 2))
+    _interval_depth(grids[:, 1], np.ones((4, 4), np.bool_), tab, tab, np.array([20.0, 40.0]),
+                    1.0, 0.1, COARSE, z, sens, 0, 4)  # fmt: skip
+
+
 #: :meth:`IntervalModel.depth` looks for the depth on every SCAN-th depth of the
 #: tables first, then between the two that bracket it (the residual is smooth in 1/z)
 SCAN = 3

@@ -14,6 +14,7 @@ import numpy as np
 
 from . import bands as bd
 from . import causes as cz
+from . import intervals as iv
 from . import overlap as ov
 from . import response as rsp
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
@@ -279,7 +280,7 @@ class DepthPipeline:
 
     # ------------------------------------------------------------------ public
 
-    def warm_up(self, overlap: bool = True) -> float:
+    def warm_up(self, optional: bool = True) -> float:
         """Compile the kernels and load the tables before a camera streams; return seconds.
 
         The first frame through a fresh process costs hundreds of milliseconds
@@ -287,7 +288,7 @@ class DepthPipeline:
         stall would back up into the camera.  A scratch pipeline sharing this
         one's depth table processes a striped test image, so this pipeline's
         learnt state (colour leak, windows) still starts from real frames.
-        ``overlap=False`` leaves out :meth:`warm_up_overlap` (for a caller that has
+        ``optional=False`` leaves out :meth:`warm_up_optional` (for a caller that has
         another process compile those kernels meanwhile).
         """
         from types import SimpleNamespace
@@ -301,8 +302,8 @@ class DepthPipeline:
         scratch = DepthPipeline(self.rig, self.config, lut=self.lut)
         # process() needs only these of a Frame (the core does not import drivers)
         scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
-        if overlap:
-            self.warm_up_overlap()
+        if optional:
+            self.warm_up_optional()
         if self.intervals is not None:
             # straight stripes bend nowhere, so the interval prediction ran on no cell:
             # compile it here, with the argument types of a frame (a grid field view)
@@ -310,18 +311,18 @@ class DepthPipeline:
             grids[1, 1] = 45.0
             depth = np.full((4, 4), 0.7, np.float32)
             self.intervals.disagreement(grids[:, 1], np.where(depth > 0, depth, np.nan))
-            # and the depth from the intervals, which runs only where lines move too little
-            self.intervals.depth(grids[:, 1], np.ones((4, 4), np.bool_))
         return time.perf_counter() - t0
 
-    def warm_up_overlap(self) -> None:
-        """Compile (or load) the kernels of overlapping bands, when they are measured.
-
-        The striped test image of :meth:`warm_up` has none (about 6 s of compilation
-        on a first run, the largest part of the pipeline's).
+    def warm_up_optional(self) -> None:
+        """Compile (or load) the kernels of the stages the test image of :meth:`warm_up`
+        does not reach: overlapping bands, when they are measured (about 6 s of
+        compilation on a first run, the largest part of the pipeline's), and the depth
+        from the line intervals (about 1.3 s; it runs only where lines move too little).
         """
         if self._overlap is not None:
             ov.warm_up(self._overlap)
+        if self.intervals is not None and self.config.interval_depth:
+            iv.warm_up()
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
