@@ -281,6 +281,14 @@ def _at(tab, p, k, f, r0, fr, c0, fc):
     return acc
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _other_du(pitch_d, b_d, a_d, c_d, a_s, c_s):
+    """Pattern ``s``'s ``du/dx`` where pattern ``d``'s measured interval ``b_d`` fixes
+    ``dz/dx`` (its ``du/dx`` taken with the sign it has at a fixed depth, ``a_d``)."""
+    g = (math.copysign(pitch_d / b_d, a_d) - a_d) / c_d
+    return a_s + g * c_s
+
+
 @nb.njit(cache=True, error_model="numpy", nogil=True)
 def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
     """The sparse pattern ``s``'s ``du/dx`` predicted from the dense ``d``'s interval
@@ -296,10 +304,7 @@ def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
     cs = _at(c, s, k, f, r0, fr, c0, fc)
     if cd == 0.0 or ad == 0.0:
         return 0.0
-    # the measured dense interval fixes dz/dx (same sign of du/dx as at a fixed depth)
-    du_d = math.copysign(pitch[d] / b_dense, ad)
-    g = (du_d - ad) / cd
-    du_s = as_ + g * cs
+    du_s = _other_du(pitch[d], b_dense, ad, cd, as_, cs)
     if du_s == 0.0 or (du_s > 0.0) != (as_ > 0.0):
         return 0.0  # the prediction folds the surface over: keep the measurement
     return du_s
@@ -375,8 +380,8 @@ SCAN = 3
 def _interval_residual(a, c, pitch, b0, b1, k, r0, fr, c0, fc):
     """Pattern 1's interval predicted at depth index ``k`` over the measured one, minus 1.
 
-    Pattern 0's interval fixes dz/dx (same sign of du/dx as at a fixed depth).  No log:
-    only its zero and the slope there are used, where the two agree.
+    Pattern 0's interval fixes dz/dx (:func:`_other_du`).  No log: only its zero and
+    the slope there are used, where the two agree.
     """
     nz = a.shape[1]
     kk = min(k, nz - 2)  # _at reads the next depth too (at weight 0 here)
@@ -386,8 +391,7 @@ def _interval_residual(a, c, pitch, b0, b1, k, r0, fr, c0, fc):
         return np.nan
     a1 = _at(a, 1, kk, k - kk, r0, fr, c0, fc)
     k1 = _at(c, 1, kk, k - kk, r0, fr, c0, fc)
-    g = (math.copysign(pitch[0] / b0, a0) - a0) / k0
-    return abs(a1 + g * k1) * b1 / pitch[1] - 1.0
+    return abs(_other_du(pitch[0], b0, a0, k0, a1, k1)) * b1 / pitch[1] - 1.0
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
