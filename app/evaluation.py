@@ -213,6 +213,11 @@ def _all_lit_mask(truth, n_projectors: int | None) -> np.ndarray:
     return truth.lit == full
 
 
+def _target_mask(truth, n_projectors: int | None) -> np.ndarray:
+    """The pixels coverage is counted on: moving (object id 2 and up), lit by every projector."""
+    return (truth.object_id >= 2) & _all_lit_mask(truth, n_projectors)
+
+
 def coverage(depth: np.ndarray, truth, n_projectors: int | None = None) -> float:
     """Share of the moving pixels lit by every projector that have a depth.
 
@@ -232,7 +237,7 @@ def coverage(depth: np.ndarray, truth, n_projectors: int | None = None) -> float
     float
         NaN when no moving pixel is lit by every projector.
     """
-    target = (truth.object_id >= 2) & _all_lit_mask(truth, n_projectors)
+    target = _target_mask(truth, n_projectors)
     n_target = int(np.count_nonzero(target))
     if not n_target:
         return math.nan
@@ -281,7 +286,7 @@ def evaluate_frame(
         raise ValueError(f"depth {depth.shape} and ground truth {truth.depth.shape} differ")
     has_depth = np.isfinite(depth)
     moving = truth.object_id >= 2
-    target = moving & _all_lit_mask(truth, n_projectors)
+    target = _target_mask(truth, n_projectors)
     n_target = int(np.count_nonzero(target))
     n_covered = int(np.count_nonzero(target & has_depth))
     n_depth = int(np.count_nonzero(has_depth))
