@@ -50,6 +50,7 @@ import time
 import uuid
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pyarrow as pa
 
@@ -116,15 +117,13 @@ _TURBO = np.array(
 )
 
 
-#: colours of the turbo table: finer than 8-bit colour can show
-TURBO_LEVELS = 1024
-
-
 def _turbo_table() -> np.ndarray:
-    """uint8 ``(TURBO_LEVELS + 1, 3)``: the polynomial at evenly spaced levels, then black."""
-    t = np.linspace(0.0, 1.0, TURBO_LEVELS)
+    """uint8 ``(256, 1, 3)`` for ``cv2.applyColorMap``: black, then the polynomial at 255
+    evenly spaced levels (RGB order: the table's channels are copied as they are)."""
+    t = np.linspace(0.0, 1.0, 255)
     rgb = np.clip(np.stack([t**k for k in range(6)], axis=-1) @ _TURBO.T, 0.0, 1.0)
-    return np.vstack([(rgb * 255 + 0.5).astype(np.uint8), np.zeros((1, 3), np.uint8)])
+    table = np.vstack([np.zeros((1, 3), np.uint8), (rgb * 255 + 0.5).astype(np.uint8)])
+    return np.ascontiguousarray(table.reshape(256, 1, 3))
 
 
 _TURBO_TABLE = _turbo_table()
@@ -133,14 +132,61 @@ _TURBO_TABLE = _turbo_table()
 def turbo_rgb(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """uint8 RGB ``(..., 3)`` of ``values`` on the turbo colormap over ``[lo, hi]`` (clipped).
 
-    NaN and infinities map to black.  A table lookup (one pass, float32): a
+    255 levels; NaN and infinities map to black.  One float pass to a level index,
+    then OpenCV's colour-table lookup (a third of the time of a NumPy gather): a
     frame's maps are coloured in about a millisecond.
     """
     v = np.asarray(values, dtype=np.float32)
-    t = (v - np.float32(lo)) * np.float32((TURBO_LEVELS - 1) / (hi - lo)) + np.float32(0.5)
-    np.clip(t, 0.0, TURBO_LEVELS - 1, out=t)
-    t[~np.isfinite(v)] = TURBO_LEVELS  # the black entry
-    return _TURBO_TABLE[t.astype(np.intp)]
+    if v.size == 0:
+        return np.zeros(v.shape + (3,), np.uint8)
+    t = (v - np.float32(lo)) * np.float32(254.0 / (hi - lo)) + np.float32(1.5)
+    np.clip(t, 1.0, 255.0, out=t)  # +inf -> 255, NaN stays NaN
+    t[~np.isfinite(v)] = 0.0  # the black entry
+    index = t.astype(np.uint8).reshape(v.shape[0] if v.ndim else 1, -1)
+    return cv2.applyColorMap(index, _TURBO_TABLE).reshape(v.shape + (3,))
+
+
+def depth_levels(depth_mm_max: int, near: float, far: float, levels: int) -> np.ndarray:
+    """uint8 table from depth in millimetres to the overlay's class id.
+
+    Class 0 is "no depth" (0 mm), classes 1 to ``levels`` split ``[near, far]``
+    (metres) evenly; depths outside take the first or last class.
+    """
+    z = np.arange(depth_mm_max + 1) / 1000.0
+    level = np.floor((z - near) * ((levels - 1) / (far - near)) + 1.5)
+    table = np.clip(level, 1, levels).astype(np.uint8)
+    table[0] = 0
+    return table
+
+
+def raw_image(kind, array: np.ndarray, color_model: str | None = None, **fields):
+    """A Rerun image archetype over ``array``'s bytes, without copying them.
+
+    rerun-sdk's constructors copy a NumPy image three times on the way to Arrow
+    (about 2 ms for a 1600x1200 RGB frame); a contiguous array wrapped as an Arrow
+    list is taken as it is.
+
+    Parameters
+    ----------
+    kind : type
+        ``rr.Image``, ``rr.DepthImage`` or ``rr.SegmentationImage``.
+    array : numpy.ndarray
+        ``(H, W)`` or ``(H, W, C)``, C-contiguous.
+    color_model : str, optional
+        ``rr.Image`` only: "L", "RGB" or "RGBA".
+    **fields
+        The archetype's other fields (``draw_order``, ``meter``, ...).
+    """
+    array = np.ascontiguousarray(array)
+    flat = pa.array(array.reshape(-1).view(np.uint8))
+    buffer = pa.ListArray.from_arrays(pa.array([0, len(flat)], pa.int32()), flat,
+                                      type=_BUFFER_TYPE)  # fmt: skip
+    height, width = array.shape[:2]
+    fmt = rr.components.ImageFormat(
+        width=width, height=height, color_model=color_model,
+        channel_datatype=rr.encodings.ChannelDatatype.from_np_dtype(array.dtype),
+    )  # fmt: skip
+    return kind.from_fields(buffer=buffer, format=fmt, **fields)
 
 
 def rerun_binary() -> Path:
@@ -607,6 +653,7 @@ class RerunSink:
             pitches = [pat.pitch_px for _, pat in rig.patterns if pat.kind == "uniform"]
             flow_range_px = (0.0, max(pitches) if pitches else 40.0)
         self.flow_range_px = (float(flow_range_px[0]), float(flow_range_px[1]))
+        self._overlay_ids = depth_levels(65535, *self.depth_range_m, OVERLAY_LEVELS)
         self.url = f"rerun+http://127.0.0.1:{port}/proxy"
         self._rays: dict[int, np.ndarray] = {}  # per grid stride (1: every pixel)
         self._channels = [pat.channel for _, pat in rig.patterns]
@@ -683,8 +730,12 @@ class RerunSink:
         rec.set_time("camera_time", duration=frame.timestamp)
 
         rgb8 = image_to_rgb8(frame.image)
-        image = rr.Image(rgb8, color_model="RGB", draw_order=0.0)
-        rec.log("world/camera/image", image.compress(self.jpeg_quality) if self.compress else image)
+        if self.compress:
+            rec.log("world/camera/image",
+                    rr.Image(rgb8, color_model="RGB", draw_order=0.0).compress(self.jpeg_quality))
+        else:
+            rec.log("world/camera/image",
+                    raw_image(rr.Image, rgb8, "RGB" if rgb8.ndim == 3 else "L", draw_order=0.0))
         flows = dict(zip(self._channels, result.flows_grid, strict=False))
         for bands in result.bands:
             accepted, rejected = _band_strips(bands, flows.get(bands.channel), result.stride)
@@ -692,29 +743,29 @@ class RerunSink:
             rec.log(f"world/camera/bands/{bands.channel}/rejected", rejected)
         lo, hi = self.flow_range_px
         for channel, flow in zip(self._channels, result.flows_grid, strict=False):
-            rec.log(f"flow/{channel}", rr.Image(turbo_rgb(flow, lo, hi)))
-        rec.log("flow/log_ratio", rr.Image(turbo_rgb(result.log_ratio_grid, *LOG_RATIO_RANGE)))
+            rec.log(f"flow/{channel}", raw_image(rr.Image, turbo_rgb(flow, lo, hi), "RGB"))
+        rec.log("flow/log_ratio", raw_image(
+            rr.Image, turbo_rgb(result.log_ratio_grid, *LOG_RATIO_RANGE), "RGB"))
         if result.depth_std_grid is not None:
             std_mm = result.depth_std_grid * 1e3
-            rec.log("uncertainty/depth_std", rr.Image(turbo_rgb(std_mm, 0.0, STD_RANGE_MM)))
+            rec.log("uncertainty/depth_std",
+                    raw_image(rr.Image, turbo_rgb(std_mm, 0.0, STD_RANGE_MM), "RGB"))
         if result.causes_grid is not None:
-            rec.log("causes", rr.SegmentationImage(result.causes_grid))
+            rec.log("causes", raw_image(rr.SegmentationImage, result.causes_grid))
         # Rerun treats depth 0 as "no measurement"; hovering shows metres.  Millimetres in
         # uint16 and the overlay's class ids in uint8: a sixth of the bytes of float32 depth
-        # and an RGBA overlay, which Rerun copies and writes on every frame
-        depth = result.depth
-        valid = depth > 0.0  # False for NaN
-        depth_mm = np.where(valid, np.minimum(depth * 1000.0 + 0.5, 65535.0), 0.0)
-        rec.log("world/camera/depth", rr.DepthImage(
-            depth_mm.astype(np.uint16), meter=1000.0, colormap=COLORMAP,
+        # and an RGBA overlay, which Rerun copies and writes on every frame.  OpenCV's
+        # conversion rounds, saturates and turns NaN into 0 in one pass
+        depth_mm = cv2.multiply(np.ascontiguousarray(result.depth, np.float32), 1000.0,
+                                dtype=cv2.CV_16U)  # fmt: skip
+        rec.log("world/camera/depth", raw_image(
+            rr.DepthImage, depth_mm, meter=1000.0, colormap=COLORMAP,
             depth_range=tuple(1000.0 * z for z in self.depth_range_m), draw_order=1.0,  # in mm
         ))  # fmt: skip
         # over the camera image: the same colours, see-through, and nothing where no depth
-        near, far = self.depth_range_m
-        level = (depth - np.float32(near)) * np.float32((OVERLAY_LEVELS - 1) / (far - near))
-        ids = np.where(valid, np.clip(level + 1.5, 1.0, OVERLAY_LEVELS), 0.0)
-        rec.log("world/camera/depth_overlay", rr.SegmentationImage(
-            ids.astype(np.uint8), opacity=OVERLAY_ALPHA / 255.0, draw_order=1.0,
+        rec.log("world/camera/depth_overlay", raw_image(
+            rr.SegmentationImage, np.take(self._overlay_ids, depth_mm),
+            opacity=OVERLAY_ALPHA / 255.0, draw_order=1.0,
         ))  # fmt: skip
         # the points of the analysis grid: the depth's own samples (the full-resolution
         # map adds only interpolated ones), a sixteenth of the work
@@ -828,6 +879,8 @@ def _band_strips(
 
 #: Arrow type of a batch of 2D line strips (what rerun-sdk builds from native data)
 _STRIPS_TYPE = rr.components.LineStrip2DBatch([]).as_arrow_array().type
+#: Arrow type of an image's buffer (a list of bytes)
+_BUFFER_TYPE = rr.components.ImageBufferBatch([]).as_arrow_array().type
 
 
 def _segments_arrow(segments: np.ndarray) -> pa.Array:
