@@ -731,8 +731,11 @@ class RerunSink:
 
         rgb8 = image_to_rgb8(frame.image)
         if self.compress:
-            rec.log("world/camera/image",
-                    rr.Image(rgb8, color_model="RGB", draw_order=0.0).compress(self.jpeg_quality))
+            # OpenCV's libjpeg-turbo: half the time of rerun-sdk's compress() (PIL)
+            bgr = cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR) if rgb8.ndim == 3 else rgb8
+            _, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+            rec.log("world/camera/image", rr.EncodedImage(
+                contents=jpeg.tobytes(), media_type="image/jpeg", draw_order=0.0))
         else:
             rec.log("world/camera/image",
                     raw_image(rr.Image, rgb8, "RGB" if rgb8.ndim == 3 else "L", draw_order=0.0))
