@@ -231,7 +231,8 @@ def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple,
 
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
                progress=None, log=print, stages: bool = False,
-               blur_calibration: bool = True, only: tuple[str, ...] = ()) -> list:
+               blur_calibration: bool = True, only: tuple[str, ...] = (),
+               pictures: Path | None = None) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
 
     ``only``: shell patterns (``fnmatch``) of case names; when given, just the
@@ -241,7 +242,8 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
     exposure and the renderer's source match, so a second run only replays.  With
     ``blur_calibration`` each rig (with its camera physics) first gets its blur
     measured on ``out/<rig>-blur/`` (:data:`BLUR_SCENE`, :func:`measure_blur`),
-    and its cases are scored with that rig file.
+    and its cases are scored with that rig file.  ``pictures``: a folder for each
+    case's picture, ``<case>.png`` (:func:`lightflow.app.pictures.case_picture`).
     """
     from lightflow.app.blurcal import calibrate_optics
     from lightflow.app.evaluation import evaluate_recording
@@ -277,7 +279,9 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
                     f"sigma^2 = {pb.camera_px2:.2f} + {pb.projector_px2:.2f} m^2" for pb in blurs))
             rig = calibrated[case.rig_name]
         log(f"{label} scoring {case.name} ...")
-        results.append((case, evaluate_recording(rec, rig=rig, progress=progress, stages=stages)))
+        picture = None if pictures is None else pictures / f"{case.name}.png"
+        results.append((case, evaluate_recording(rec, rig=rig, progress=progress, stages=stages,
+                                                 picture=picture, title=case.name)))
     return results
 
 

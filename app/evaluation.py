@@ -439,6 +439,8 @@ def evaluate_recording(
     config=None,
     progress: Callable[[str, int, int], None] | None = None,
     stages: bool = False,
+    picture: str | Path | None = None,
+    title: str = "",
 ) -> RecordingMetrics:
     """Replay every frame of a simulated recording through the pipeline and score it.
 
@@ -456,6 +458,11 @@ def evaluate_recording(
         Also attribute the error to the stages (:mod:`lightflow.app.stages`),
         against the true flows in ``ground_truth/<frame>_flows.npz`` or, without
         them, computed from the built-in scene.
+    picture : str or Path, optional
+        Also draw the last frame's camera image, depth error and causes of no depth
+        into this PNG (:func:`lightflow.app.pictures.case_picture`).
+    title : str
+        The picture's heading before its figures (default: the recording's folder).
 
     Raises
     ------
@@ -519,6 +526,16 @@ def evaluate_recording(
                 result.intervals_grid))  # fmt: skip
         if progress:
             progress("frames", i + 1, len(rec.frames))
+    if picture is not None and per_frame:
+        from lightflow.app.pictures import case_picture
+
+        last = per_frame[-1]
+        case_picture(
+            frame.image, result.depth, truth, _target_mask(truth, n_proj), result.causes_grid,
+            result.stride, f"{title or Path(rec_path).name}, frame {len(per_frame) - 1}: median "
+            f"{1e3 * last.median_error_m:.1f} mm, signed {1e3 * last.median_signed_m:+.1f} mm, "
+            f"coverage {100 * last.coverage:.0f} %", picture,
+        )  # fmt: skip
     return RecordingMetrics(
         path=str(rec_path),
         scene=str(info.get("scene", "?")),

@@ -268,3 +268,43 @@ def test_matrix_rigs_span_the_geometry_users_build():
     a = project_points(full.camera.K, full.camera.dist, pts)
     b = project_points(crop.camera.K, crop.camera.dist, pts)
     np.testing.assert_allclose(a - b, [[400, 300], [400, 300]], atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- pictures
+
+
+def test_error_panel_colours():
+    from lightflow.app.pictures import NO_DEPTH_RGB, OFF_OBJECT_RGB, error_rgb
+
+    truth = np.full((1, 6), 0.8, np.float32)
+    depth = np.array([[0.8, 0.84, 0.76, np.nan, 0.8, np.nan]], np.float32)
+    target = np.array([[1, 1, 1, 1, 0, 0]], bool)
+    moving = target.copy()
+    rgb = error_rgb(depth, truth, target, moving)
+    assert rgb[0, 0].min() > 0.9  # no error: white
+    assert rgb[0, 1, 0] > 0.3 > rgb[0, 1, 2]  # 40 mm too far: red
+    assert rgb[0, 2, 2] > 0.3 > rgb[0, 2, 0]  # 40 mm too near: blue
+    assert tuple(rgb[0, 3]) == pytest.approx(NO_DEPTH_RGB)  # on the object, no depth
+    assert tuple(rgb[0, 4]) == pytest.approx(OFF_OBJECT_RGB)  # depth off the object
+    assert (rgb[0, 5] == 0).all()  # background
+
+
+def test_eval_pictures(recordings, tmp_path, capsys):
+    rec = recordings[1]
+    out = tmp_path / "pics"
+    assert cli_main(["eval", str(rec), "--pictures", str(out)]) == 0
+    assert f"pictures written to {out}/" in capsys.readouterr().out
+    img = cv2.imread(str(out / f"{rec.name}.png"))
+    assert img.shape[1] == 1260 and 300 < img.shape[0] < 500  # three panels side by side
+    # the causes panel shows the board's depth in its colour (0, 200, 0), BGR here
+    green = (np.abs(img.astype(int) - (0, 200, 0)).sum(axis=-1) < 30).mean()
+    assert green > 0.05
+
+
+def test_eval_pictures_folder_that_cannot_be_made_is_one_line(recordings, tmp_path, capsys):
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert cli_main(["eval", str(recordings[0]), "--pictures", str(blocked / "pics")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"lightflow: error: --pictures {blocked / 'pics'}: cannot create")
+    assert err.count("\n") == 1

@@ -88,6 +88,10 @@ def register(subparsers) -> None:
                    "renderer's true flows (from `simulate --truth-flows`, or computed from "
                    "the scene), the log ratio and the depth")
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the metrics as JSON")
+    p.add_argument("--pictures", type=Path, metavar="DIR",
+                   help="also draw each recording's (case's) last frame into DIR/<name>.png: "
+                   "the camera image, the signed depth error, and why the moving object got no "
+                   "depth, cause by cause")
     p.add_argument("--rig", metavar="RIG", help="rig file overriding the recordings' embedded rig")
     p.set_defaults(func=run)
 
@@ -172,10 +176,12 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ConfigError(f"--plot {args.plot}: expected a .png file name")
     config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
+    pictures = _pictures_dir(args.pictures)
     results = []
     for rec in args.recordings:
+        picture = None if pictures is None else pictures / f"{Path(rec).resolve().name}.png"
         results.append(evaluate_recording(rec, rig, config, progress=_progress(str(rec)),
-                                          stages=args.stages))  # fmt: skip
+                                          stages=args.stages, picture=picture))  # fmt: skip
     for line in format_table(results):
         print(line)
     if args.stages:
@@ -183,11 +189,24 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         write_metrics_json(results, args.json)
         print(f"metrics written to {args.json}")
+    if pictures is not None:
+        print(f"pictures written to {pictures}/")
     plot = args.plot or (Path("eval.png") if len(results) > 1 else None)
     if plot is not None:
         plot_error_vs_exposure(results, plot)
         print(f"plot written to {plot}")
     return 0
+
+
+def _pictures_dir(path: Path | None) -> Path | None:
+    """``--pictures DIR``, created; a ConfigError names it when it cannot be."""
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--pictures {path}: cannot create the folder ({exc.strerror})") from None
+    return path
 
 
 def _print_stages(named) -> None:
@@ -213,10 +232,12 @@ def _run_matrix(args: argparse.Namespace) -> int:
     def progress(stage: str, i: int, n: int) -> None:
         print(f"\r  {stage} {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
 
+    pictures = _pictures_dir(args.pictures)
     results = run_matrix(out, frames=args.frames, tuning=args.tuning_rigs, progress=progress,
                          log=lambda text: print(text, file=sys.stderr, flush=True),
                          stages=args.stages, only=tuple(args.case),
-                         blur_calibration=not args.no_blur_calibration)  # fmt: skip
+                         blur_calibration=not args.no_blur_calibration,
+                         pictures=pictures)  # fmt: skip
     lines = format_matrix(results)
     for line in lines:
         print(line)
@@ -226,5 +247,6 @@ def _run_matrix(args: argparse.Namespace) -> int:
     doc = {"format": "lightflow-eval-matrix/1",
            "cases": [dict(case=c.name, rig=c.rig_name, **m.to_dict()) for c, m in results]}
     (out / "matrix.json").write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"table written to {out / 'matrix.md'}, metrics to {out / 'matrix.json'}")
+    print(f"table written to {out / 'matrix.md'}, metrics to {out / 'matrix.json'}"
+          + (f", pictures to {pictures}/" if pictures is not None else ""))
     return 0

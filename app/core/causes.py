@@ -53,6 +53,13 @@ CAUSES = (
     ("out of depth range", "the flow ratio lies outside the rig's working range"),
 )  # fmt: skip
 CAUSE_NAMES = tuple(name for name, _ in CAUSES)
+#: RGB colour of each cause, as the Rerun view and `lightflow eval --pictures` draw it
+#: (code order: depth, no lines, faint, cut, overlap,
+#: irregular, static, out of model range, blur not fitted, inconsistent, uncertain,
+#: out of depth range)
+CAUSE_COLOURS = ((0, 200, 0), (40, 40, 40), (120, 120, 200), (230, 120, 30), (200, 0, 200),
+                 (230, 200, 0), (90, 90, 90), (255, 0, 0), (0, 200, 200), (160, 60, 0),
+                 (255, 130, 180), (255, 255, 255))  # fmt: skip
 
 
 

@@ -54,7 +54,7 @@ import cv2
 import numpy as np
 import pyarrow as pa
 
-from lightflow.app.core.causes import CAUSES
+from lightflow.app.core.causes import CAUSE_COLOURS, CAUSES
 from lightflow.app.core.errors import ConfigError, DriverError
 from lightflow.app.core.geometry import camera_rays
 from lightflow.app.core.results import BandSet, FrameResult, RunStats
@@ -82,12 +82,6 @@ DEPTH_RANGE_M = (0.4, 1.2)
 LOG_RATIO_RANGE = (-1.0, 1.0)
 #: colour range of the predicted depth error (mm)
 STD_RANGE_MM = 30.0
-#: colour of each cause of no depth (code order: depth, no lines, faint, cut, overlap,
-#: irregular, static, out of model range, blur not fitted, inconsistent, uncertain,
-#: out of depth range)
-CAUSE_COLOURS = ((0, 200, 0), (40, 40, 40), (120, 120, 200), (230, 120, 30), (200, 0, 200),
-                 (230, 200, 0), (90, 90, 90), (255, 0, 0), (0, 200, 200), (160, 60, 0),
-                 (255, 130, 180), (255, 255, 255))  # fmt: skip
 COLORMAP = "turbo"
 #: opacity of the depth colours over the camera image (0-255)
 OVERLAY_ALPHA = 170
