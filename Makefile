@@ -58,11 +58,12 @@ bench-batch: setup
 
 # Accuracy: the evaluation matrix (generated rigs x every scene x the paper's
 # exposures; see `lightflow eval --help`), printed as the README's table.
-# Recordings are kept in out/eval/matrix and reused by the next run.
+# Recordings are kept in out/eval/matrix and reused by the next run; a picture
+# of each case (error map, causes of no depth) goes to out/eval/pictures.
 EVAL := out/eval
 eval: setup
 	mkdir -p $(EVAL)
-	$(BIN)/lightflow eval --matrix $(EVAL)/matrix --frames 2 --stages
+	$(BIN)/lightflow eval --matrix $(EVAL)/matrix --frames 2 --stages --pictures $(EVAL)/pictures
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
