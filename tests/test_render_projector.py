@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,15 +24,23 @@ SCALE = 0.08  # 128x96 camera
 #: no lens blur, so that every pixel is the renderer's own integral
 SHARP = SensorModel(lens_blur_px=0.0)
 
-# Digests of the float64 radiance (80x60, t0 = 0.05 s) that the renderer gave
-# before it had a projector response (main at 2a01232), and its mean: a change of
-# the default physics shows in the mean, a change of the last bits only in the digest.
+# The float64 radiance (80x60, t0 = 0.05 s) that the renderer gave before it had a
+# projector response (main at 2a01232): its mean and the means of its 10x10-pixel blocks.
+# A change of the default physics shows in both; the last bits are not compared, since
+# numba compiles the renderer for the host CPU and another CPU rounds differently (a
+# byte digest of the ball-wall render, written on one machine, failed on another).
 DEFAULT_RENDERS = {
-    ("two-projector", "ball-wall", False): ("7f43842bacbd22b2", 12.45997148829661),
-    ("two-projector", "ball-wall", True): ("53db1a42ccadaa02", 12.431106021245768),
-    ("single-projector", "board", False): ("dadad878acc848a6", 21.318795705565144),
-    ("single-projector", "board", True): ("0767610a3ba63006", 21.307373961125275),
+    (r["rig"], r["scene"], r["exact"]): r
+    for r in json.loads((Path(__file__).parent / "data" / "default_renders.json").read_text())[
+        "renders"
+    ]
 }
+
+
+def block_means(rad: np.ndarray, block: int = 10) -> np.ndarray:
+    """Means of ``rad``'s ``block`` x ``block`` pixel blocks, per channel."""
+    h, w = rad.shape[:2]
+    return rad.reshape(h // block, block, w // block, block, -1).mean(axis=(1, 3))
 
 
 def with_levels(rig, on: dict[int, int], off: dict[int, int] | None = None):
@@ -52,9 +60,9 @@ def test_default_renders_are_unchanged(key):
     scene = get_scene(scene_name)
     r = SceneRenderer(resolve_rig(rig_name).scaled(0.05), scene, SensorModel())
     rad = r.radiance(0.05, scene.exposure_s, exact=exact)
-    digest, mean = DEFAULT_RENDERS[key]
-    assert float(rad.mean()) == pytest.approx(mean, rel=1e-12)
-    assert hashlib.sha256(rad.tobytes()).hexdigest()[:16] == digest
+    expected = DEFAULT_RENDERS[key]
+    assert float(rad.mean()) == pytest.approx(expected["mean"], rel=1e-12)
+    np.testing.assert_allclose(block_means(rad), expected["block_means"], rtol=1e-9, atol=0)
     # the defaults are an ideal projector: full light on the lines, none elsewhere
     gain, black = pattern_light(r.spec, SensorModel())
     assert np.array_equal(gain, np.ones(len(r.spec.patterns)))
