@@ -44,10 +44,11 @@ bench: setup
 	$(BIN)/lightflow bench --recorder --frames 5
 
 # Live capture from Aravis's GigE Vision simulator (loopback, private netns):
-# three cold runs of `capture --record --lossless`, with one core kept busy.
+# three cold runs of `capture --record --lossless`, with one core kept busy; then
+# 1600x1200 at 30 fps with Rerun, the simulator streaming a rendered board.
 bench-capture: setup
 	$(NETNS) sh -c 'ip link set lo up && cd tests && ../$(BIN)/python bench_capture.py --runs 3 --hog && \
-	  ../$(BIN)/python bench_capture.py --runs 1 --size 1600x1200 --fps 30 --frames 300 --rerun'
+	  ../$(BIN)/python bench_capture.py --runs 1 --size 1600x1200 --fps 30 --frames 300 --rerun --scene board'
 
 # `lightflow batch` on a local Dask cluster: frames/s with 1 and 2 workers, 32-worker estimate
 # (4 recordings of 60 frames at 1600x1200, cycled from 4 rendered frames).

@@ -6,8 +6,10 @@ Run inside a private network namespace (``make bench-capture`` does)::
 
 Each run is a cold ``lightflow capture --record --lossless`` (a new process,
 so kernels compile and tables load as a user's first run does), optionally
-with a CPU hog on one core.  It prints one line per run and exits 1 if any
-run lost or dropped a recorded frame.
+with a CPU hog on one core.  With ``--scene NAME`` the simulator streams frames
+of that scene rendered for the bench's rig (``lightflow simulate``), so that the
+pipeline measures real projected lines instead of Aravis's test pattern.  It
+prints one line per run and exits 1 if any run lost or dropped a recorded frame.
 """
 
 from __future__ import annotations
@@ -77,34 +79,50 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--hog", action="store_true", help="keep one core busy during the runs")
     p.add_argument("--rerun", action="store_true", help="also write a compressed .rrd")
+    p.add_argument("--scene", help="stream 3 rendered frames of this scene (default: Aravis's "
+                   "test pattern, which has no lines)")  # fmt: skip
     args = p.parse_args()
     problem = private_netns_problem()
     if problem:
         print(problem, file=sys.stderr)
         return 2
     w, h = (int(v) for v in args.size.split("x"))
-    bad = 0
-    with tempfile.TemporaryDirectory() as tmp, Simulator():
+    with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         rig = scaled_rig(w, h, work / "rig.json")
-        hog = subprocess.Popen([sys.executable, "-c", "while 1: pass"]) if args.hog else None
-        try:
-            for i in range(args.runs):
-                r = one_run(rig, args.fps, args.frames, args.rerun, work, i)
-                ok = (r["exit"] == 0 and r["lost"] == 0 and r["recorded"] == args.frames
-                      and r["consecutive"])
-                bad += not ok
-                print(f"{args.size} at {args.fps:g} fps, {args.frames} frames"
-                      f"{', hog' if hog else ''}{', rrd' if args.rerun else ''}: exit {r['exit']}, "
-                      f"lost by the camera {r['lost']}, recorded {r['recorded']} "
-                      f"(consecutive ids: {'yes' if r['consecutive'] else 'NO'}), depth on "
-                      f"{r['processed']} (skipped {r['depth_skipped']}) {' '.join(r['tail'])}",
-                      flush=True)
-        finally:
-            if hog is not None:
-                hog.kill()
-                hog.wait()
+        frames_from = None
+        if args.scene:
+            frames_from = str(work / "scene")
+            subprocess.run([sys.executable, "-m", "lightflow.app.cli", "simulate", "--scene",
+                            args.scene, "--rig", str(rig), "--frames", "3", "--out", frames_from],
+                           check=True, stdout=subprocess.DEVNULL)  # fmt: skip
+        with Simulator(frames_from=frames_from):
+            bad = runs(args, rig, work)
     return 1 if bad else 0
+
+
+def runs(args, rig: Path, work: Path) -> int:
+    """Run the captures, print a line each; the number that lost or dropped a recorded frame."""
+    bad = 0
+    hog = subprocess.Popen([sys.executable, "-c", "while 1: pass"]) if args.hog else None
+    try:
+        for i in range(args.runs):
+            r = one_run(rig, args.fps, args.frames, args.rerun, work, i)
+            ok = (r["exit"] == 0 and r["lost"] == 0 and r["recorded"] == args.frames
+                  and r["consecutive"])  # fmt: skip
+            bad += not ok
+            print(f"{args.size} at {args.fps:g} fps, {args.frames} frames"
+                  f"{', ' + args.scene if args.scene else ''}{', hog' if hog else ''}"
+                  f"{', rrd' if args.rerun else ''}: exit {r['exit']}, "
+                  f"lost by the camera {r['lost']}, recorded {r['recorded']} "
+                  f"(consecutive ids: {'yes' if r['consecutive'] else 'NO'}), depth on "
+                  f"{r['processed']} (skipped {r['depth_skipped']}) {' '.join(r['tail'])}",
+                  flush=True)  # fmt: skip
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+    return bad
 
 
 if __name__ == "__main__":

@@ -127,7 +127,7 @@ def test_capture_aravis_100_frames_lossless(sim, sim_rig_file, tmp_path, capsys)
     stems = check_recording(rec, 110)
     # consecutive camera frame ids: the camera lost nothing, and nothing was dropped after it
     ids = [int(s) for s in stems]
-    assert ids == list(range(ids[0], ids[0] + 110))
+    assert ids == list(range(ids[0], ids[0] + 110)), err
     assert read_recording(rec).exposure_s == pytest.approx(0.004)
     assert "warming up" in out
     # depth may skip frames on a busy machine, but every skip is counted and shown
