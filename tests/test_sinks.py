@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,44 @@ def test_depth_export(tmp_path, rig):
     assert np.isnan(arr[:, :40]).all()
     np.testing.assert_array_equal(arr[:, 40:], result.depth[:, 40:])
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["000007.npy"]  # no tmp left
+
+
+def test_depth_files_are_those_of_np_save_with_or_without_o_direct(tmp_path, monkeypatch):
+    """The page-cache bypass writes the very bytes np.save does; a refusal falls back."""
+    import os
+
+    from lightflow.app.sinks.depth_export import DirectNpyWriter
+
+    # the repository's own disk: /tmp may be a tmpfs, which refuses O_DIRECT
+    out = Path(__file__).parent / f".direct-{os.getpid()}"
+    out.mkdir()
+    try:
+        depth = np.random.default_rng(1).random((120, 170)).astype(np.float32)
+        depth[5:9, 3:40] = np.nan
+        writer = DirectNpyWriter()
+        for i in range(2):  # the buffer is reused
+            writer.write(out / f"{i}.npy", depth * (i + 1))
+            np.save(out / f"ref{i}.npy", depth * (i + 1))
+            assert (out / f"{i}.npy").read_bytes() == (out / f"ref{i}.npy").read_bytes()
+        assert sorted(p.name for p in out.iterdir()) == ["0.npy", "1.npy", "ref0.npy", "ref1.npy"]
+    finally:
+        for p in out.iterdir():
+            p.unlink()
+        out.rmdir()
+
+    real_open = os.open
+
+    def no_direct(path, flags, *args):
+        if flags & os.O_DIRECT:
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr("os.open", no_direct)
+    writer = DirectNpyWriter()
+    writer.write(tmp_path / "a.npy", depth)
+    assert not writer.direct
+    np.save(tmp_path / "ref.npy", depth)
+    assert (tmp_path / "a.npy").read_bytes() == (tmp_path / "ref.npy").read_bytes()
 
 
 def read_ply(path: Path) -> np.ndarray:
@@ -95,8 +134,6 @@ def test_image_to_rgb8_uses_the_significant_bits():
 
 def test_full_disk_during_export_is_one_line_and_leaves_no_partial_file(tmp_path, rig,
                                                                         monkeypatch):
-    import errno
-
     from lightflow.app.core.errors import OutputError
     from lightflow.app.sinks.depth_export import DepthExportSink
 
@@ -110,7 +147,11 @@ def test_full_disk_during_export_is_one_line_and_leaves_no_partial_file(tmp_path
             fh.write = write
         return fh
 
+    def full_disk_write(fd, data):  # the depth maps' O_DIRECT path
+        raise OSError(errno.ENOSPC, "No space left on device")
+
     monkeypatch.setattr("builtins.open", full_disk_open)
+    monkeypatch.setattr("os.write", full_disk_write)
     for sink, name in ((DepthExportSink(tmp_path / "d"), "d/000007.npy"),
                        (PlyExportSink(tmp_path / "p", rig), "p/000007.ply")):
         with pytest.raises(OutputError) as err:
