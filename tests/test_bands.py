@@ -563,6 +563,8 @@ def test_fill_print_on_some_rows_fills_them_as_the_whole_image_does():
     rows = np.array([0, 1, 5, 11, 12, 30, printed.shape[0] - 1])
     part = fill_print(printed, 13, min_dip=6.0, rows=rows)
     assert np.array_equal(part[rows], whole[rows])
+    # the other rows are the image's own
+    assert np.array_equal(np.delete(part, rows, axis=0), np.delete(printed, rows, axis=0))
     assert not np.array_equal(whole[rows], printed[rows])  # some print was filled there
 
 

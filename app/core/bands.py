@@ -143,12 +143,37 @@ def histogram_median(values: np.ndarray) -> float:
     """
     if values.dtype not in (np.uint8, np.uint16) or values.size == 0:
         return float(np.median(values))
-    below = np.cumsum(np.bincount(values.ravel()))
+    below = np.cumsum(value_counts(values))
     n = values.size
     # the k-th smallest value (0-based) is the first with more than k values at or below it
     lo = int(np.searchsorted(below, (n - 1) // 2, side="right"))
     hi = int(np.searchsorted(below, n // 2, side="right"))
     return 0.5 * (lo + hi)
+
+
+def value_counts(values: np.ndarray) -> np.ndarray:
+    """How often each value occurs: ``np.bincount(values.ravel())``, for uint8 from OpenCV.
+
+    ``np.bincount`` first widens every value to a 64-bit integer; OpenCV's histogram of
+    a uint8 array counts the same in a quarter of the time (0.14 -> 0.04 ms on a grid's
+    120 000 cause codes).
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Non-negative integers.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 counts of 0, 1, ...: 256 of them for uint8 (trailing zeros included),
+        else ``values.max() + 1``.
+    """
+    # float32 counts are exact below 2 ** 24
+    if values.dtype != np.uint8 or not 0 < values.size < 2**24:
+        return np.bincount(values.ravel())
+    hist = cv2.calcHist([np.ascontiguousarray(values).reshape(1, -1)], [0], None, [256], [0, 256])
+    return hist.ravel().astype(np.int64)
 
 
 def fill_print(
@@ -191,29 +216,52 @@ def fill_print(
     # every channel of every column alike: one single-channel image, the fastest path
     flat = np.ascontiguousarray(image).reshape(h, -1)
     kernel = np.ones((length, 1), np.uint8)
-    sigma = column_noise(flat)
-    out = flat.copy()
+    level = max(min_dip, 5.0 * column_noise(flat))
     if rows is None:
-        part = flat
-        closed_part = cv2.morphologyEx(flat, cv2.MORPH_CLOSE, kernel)
+        out = flat.copy()
+        closed = cv2.morphologyEx(flat, cv2.MORPH_CLOSE, kernel)
+        cv2.copyTo(closed, _deep_dips(closed, flat, level), out)
     else:
-        part = flat[rows]
-        # the closing's erosion only where it is read: the same values on these rows
-        closed_part = np.empty_like(part)
-        run_rows(_erode_rows, len(rows), cv2.dilate(flat, kernel), rows, length // 2,
-                 closed_part)  # fmt: skip
+        # bands of rows on a thread per core (OpenCV and the erosion release the GIL): the
+        # closing is row-local, so the bands give the values of one pass over all rows
+        out = np.empty_like(flat)
+        run_rows(_fill_rows, len(rows), flat, np.unique(rows), kernel, level, out)
+    return out.reshape(image.shape)
+
+
+def _deep_dips(closed: np.ndarray, flat: np.ndarray, min_level: float) -> np.ndarray:
+    """Mask (255) of the pixels :func:`fill_print` replaces by their ``closed`` value."""
     # closed >= flat everywhere, so the unsigned difference cannot wrap
-    dip = cv2.subtract(closed_part, part)
-    level = cv2.max(cv2.addWeighted(closed_part, 0.125, closed_part, 0.0, 0.0),
-                    max(min_dip, 5.0 * sigma))  # fmt: skip
+    dip = cv2.subtract(closed, flat)
+    level = cv2.max(cv2.addWeighted(closed, 0.125, closed, 0.0, 0.0), min_level)
     deep = cv2.compare(dip, level, cv2.CMP_GT)
     # the pixel's channels and one neighbour's on each side: 11 values side by side
-    deep = cv2.dilate(deep, np.ones((1, 11), np.uint8))
-    if rows is None:
-        cv2.copyTo(closed_part, deep, out)
-    else:
-        out[rows] = cv2.copyTo(closed_part, deep, part.copy())
-    return out.reshape(image.shape)
+    return cv2.dilate(deep, np.ones((1, 11), np.uint8))
+
+
+def _fill_rows(flat, rows, kernel, min_level, out, i0, i1):
+    """:func:`fill_print` of ``flat`` on the rows ``rows[i0:i1]`` (``rows`` sorted), into
+    ``out``; the image rows from ``rows[i0]`` to ``rows[i1]`` (the first and the last band:
+    to the image's border) are copied there first.
+
+    The dilation runs on the image rows those rows' erosion reads, and the rows it reads
+    in turn: away from the image's border, the slice's own border never reaches a value
+    that is used (at the image's border the two borders coincide).
+    """
+    h = flat.shape[0]
+    start = 0 if i0 == 0 else int(rows[i0])
+    end = h if i1 == len(rows) else int(rows[i1])
+    out[start:end] = flat[start:end]
+    if i1 <= i0:
+        return
+    sub = rows[i0:i1]
+    r = kernel.shape[0] // 2
+    lo = max(0, int(sub[0]) - 2 * r)
+    hi = min(h, int(sub[-1]) + 2 * r + 1)
+    part = flat[sub]
+    closed = np.empty_like(part)
+    _erode_rows(cv2.dilate(flat[lo:hi], kernel), sub - lo, r, closed, 0, len(sub))
+    out[sub] = cv2.copyTo(closed, _deep_dips(closed, part, min_level), part)
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)

@@ -20,6 +20,7 @@ from .bands import (
     F_RAMP,
     F_START,
     F_VALID,
+    value_counts,
 )
 from .threads import run_rows
 
@@ -133,7 +134,10 @@ def _distance(band, x):
 def count_causes(causes: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
     """Pixels per cause code (``len(CAUSES)`` counts), optionally only ``where`` is true."""
     values = causes if where is None else causes[where]
-    return np.bincount(values.ravel(), minlength=len(CAUSES))[: len(CAUSES)]
+    counts = value_counts(values)
+    if counts.size < len(CAUSES):
+        counts = np.pad(counts, (0, len(CAUSES) - counts.size))
+    return counts[: len(CAUSES)]
 
 
 def describe_counts(counts, of: int | None = None, top: int = 4) -> str:

@@ -6,6 +6,7 @@ Rerun); :mod:`lightflow.app.runner` puts it between a camera and the sinks.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field, fields
 
@@ -24,6 +25,7 @@ from .intervals import IntervalModel
 from .profile_model import static_width_excess
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
+from .threads import run_tasks
 
 MAX_BANDS_PER_ROW = 160
 #: the local spread of the sweeps over-counts independent bands (neighbouring rows see
@@ -393,7 +395,14 @@ class DepthPipeline:
             if again is not None:
                 bands, counts, grids = again
         t2 = time.perf_counter()
-        fm = self.flow_model.combine(grids, cfg.flow, self._periodic)
+        flows = functools.partial(self.flow_model.combine, grids, cfg.flow, self._periodic)
+        curved = None
+        if self.intervals is None:
+            fm = flows()
+        else:
+            # where the surface bends needs only the intervals: found on a pool thread
+            # while this one combines the flows
+            curved, fm = run_tasks(functools.partial(self.intervals.curved, grids[:, 1]), flows)
         self.blur_px = fm.blur_px
         t3 = time.perf_counter()
         timings["flow"] = (t3 - t2) * 1e3
@@ -404,7 +413,6 @@ class DepthPipeline:
             # a flow is L / B, and a sweep shorter than the line is read against the
             # line's width, B over the pitch: the sweeps are read again with the
             # predicted interval
-            curved = self.intervals.curved(grids[:, 1])
             fix = self.intervals.correct(grids[:, 1], z_raw, curved)
             if fix.any():
                 fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)

@@ -86,3 +86,28 @@ def run_rows(kernel, n: int, *args) -> None:
     kernel(*args, edges[t - 1], edges[t])
     for f in futures:
         f.result()
+
+
+def run_tasks(*tasks):
+    """Run independent callables at once, one per core; return their results in order.
+
+    The calling thread runs the last one itself (and all of them, one after the
+    other, on one core or from a pool thread, where waiting on the pool could
+    deadlock).  For OpenCV and numba calls that release the GIL.
+
+    Parameters
+    ----------
+    *tasks : callable
+        Functions without arguments.
+
+    Returns
+    -------
+    list
+        ``[task() for task in tasks]``.
+    """
+    if len(tasks) <= 1 or threads() <= 1 or getattr(_local, "worker", False):
+        return [task() for task in tasks]
+    pool = shared_pool()
+    futures = [pool.submit(task) for task in tasks[:-1]]
+    last = tasks[-1]()
+    return [*(f.result() for f in futures), last]
