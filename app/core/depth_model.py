@@ -85,7 +85,7 @@ def _projector_params(rig: Rig) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
 def _proj_u_du(pp, x, y, z):
     """Projector column u and du/dz for the camera point z * (x, y, 1)."""
     # camera point and its derivative along the ray
@@ -105,7 +105,7 @@ def _proj_u_du(pp, x, y, z):
     return u, du, pz
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
 def _h_of_z(projs, pats, single, x, y, z):
     """h_p(z) = log|dk1/dz| - log|dk2/dz|; NaN where a projector cannot see the point."""
     u1, du1, pz1 = _proj_u_du(projs[int(pats[0, 0])], x, y, z)
@@ -126,7 +126,7 @@ def _h_of_z(projs, pats, single, x, y, z):
 # serial and releasing the GIL, run on a thread per core by build_lut: numba's
 # parallel=True compiles about 1.5x slower (seconds on a cold cache, on the
 # path to a first run's first depth picture) for no faster a build
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _build_lut(rays, projs, pats, single, near, far, n_fwd, n_lut, min_slope, h0, inv_dh, table):
     n = rays.shape[0]
     inv_near = 1.0 / near
@@ -244,7 +244,7 @@ def h_function(rig: Rig, rays_xy: np.ndarray, z: np.ndarray) -> np.ndarray:
     return _h_many(projs, pats, rig.single_projector, rays_xy, np.broadcast_to(z, len(rays_xy)))
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
 def _h_many(projs, pats, single, xy, z):
     out = np.empty(xy.shape[0])
     for i in range(xy.shape[0]):
@@ -338,7 +338,7 @@ def load_or_build_lut(
     return lut
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
 def _spline_at(row, t):
     """Catmull-Rom through the uniform samples ``row`` (clamped ends) at ``t``.
 
@@ -357,7 +357,7 @@ def _spline_at(row, t):
     return p1 + 0.5 * f * (a + f * (b + f * c)), 0.5 * (a + f * (2.0 * b + 3.0 * f * c))
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _lookup(logr, h0, inv_dh, table, z, slope, i0, i1):
     """Depth at ``logr`` on grid rows ``i0 .. i1``; also ``|dz / dlogr|`` unless
     ``slope`` is empty.  Each pixel's table row is read once."""

@@ -97,6 +97,12 @@ OV_AMBIGUOUS = -4.0  # the integer part of L / B is not resolved by the referenc
 CODES = ((OV_MEASURED, "measured"), (OV_SHORT, "short"), (OV_FLAT, "flat"),
          (OV_IRREGULAR, "irregular"), (OV_AMBIGUOUS, "ambiguous"))  # fmt: skip
 
+#: numba options of every kernel: no C-callable wrapper (only for first-class function
+#: use, which no caller makes; each cost a share of the kernels' first-run compilation)
+_NO_CFUNC = {"no_cfunc_wrapper": True}
+#: helpers only called from other kernels: no Python wrapper either
+_INTERNAL = {"no_cfunc_wrapper": True, "no_cpython_wrapper": True}
+
 _P_HARM, _P_MINPER, _P_FLOOR, _P_RELSTD, _P_SHAPE, _P_MARGIN, _P_BGSTD, _P_PRIORSTD = range(8)
 
 
@@ -144,14 +150,14 @@ class OverlapParams:
                          self.bg_std, self.prior_std], dtype=np.float64)  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **_INTERNAL)
 def _sinc(x):
     if abs(x) < 1e-12:
         return 1.0
     return math.sin(math.pi * x) / (math.pi * x)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def chirp_position(t, tc, g):
     """Position at which lines ``B (1 + g (t - tc))`` apart are ``B`` apart.
 
@@ -163,58 +169,7 @@ def chirp_position(t, tc, g):
     return tc + math.log1p(g * (t - tc)) / g
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _cholesky_solve(G, rhs, sol, dinv):
-    """Solve ``G sol = rhs`` (G symmetric positive definite, overwritten by its factor).
-
-    Also writes the diagonal of ``G^-1`` into ``dinv``.  False when ``G`` is not
-    positive definite.  (The systems are 9-25 unknowns: LAPACK's call overhead
-    would dominate.)
-    """
-    P = G.shape[0]
-    for j in range(P):
-        d = G[j, j]
-        for k in range(j):
-            d -= G[j, k] * G[j, k]
-        if not (d > 1e-12 * G[0, 0]):
-            return False
-        d = math.sqrt(d)
-        G[j, j] = d
-        for i in range(j + 1, P):
-            v = G[i, j]
-            for k in range(j):
-                v -= G[i, k] * G[j, k]
-            G[i, j] = v / d
-    # forward and back substitution
-    y = np.empty(P)
-    for i in range(P):
-        v = rhs[i]
-        for k in range(i):
-            v -= G[i, k] * y[k]
-        y[i] = v / G[i, i]
-    for i in range(P - 1, -1, -1):
-        v = y[i]
-        for k in range(i + 1, P):
-            v -= G[k, i] * sol[k]
-        sol[i] = v / G[i, i]
-    # diag(G^-1) = column sums of squares of L^-1
-    Li = np.zeros((P, P))
-    for j in range(P):
-        Li[j, j] = 1.0 / G[j, j]
-        for i in range(j + 1, P):
-            v = 0.0
-            for k in range(j, i):
-                v -= G[i, k] * Li[k, j]
-            Li[i, j] = v / G[i, i]
-    for j in range(P):
-        v = 0.0
-        for i in range(j, P):
-            v += Li[i, j] * Li[i, j]
-        dinv[j] = v
-    return True
-
-
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
 
@@ -252,8 +207,9 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     else:
         # the same sums over the warped positions (products of harmonics are
         # harmonics at the sum and difference frequencies whatever the positions)
-        Sc[1:] = 0.0
-        Ss[1:] = 0.0
+        for k in range(1, 2 * M + 1):
+            Sc[k] = 0.0
+            Ss[k] = 0.0
         for j in range(N):
             th = w * chirp_position(float(j), tc, chirp)
             c1, s1 = math.cos(th), math.sin(th)
@@ -294,10 +250,50 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
         cr, sr = cr * c1 - sr * s1, sr * c1 + cr * s1
         if j % 64 == 63:  # keep the rotation on the unit circle
             cr, sr = math.cos(w * (j + 1)), math.sin(w * (j + 1))
+    # solve G sol = rhs by Cholesky (G overwritten by its factor), and diag(G^-1): the
+    # systems are 9-25 unknowns (LAPACK's call overhead would dominate); in line, not
+    # a kernel of its own (each costs a share of a first run's compilation)
+    for j in range(P):
+        d = G[j, j]
+        for k in range(j):
+            d -= G[j, k] * G[j, k]
+        if not (d > 1e-12 * G[0, 0]):
+            return np.nan  # not positive definite
+        d = math.sqrt(d)
+        G[j, j] = d
+        for i in range(j + 1, P):
+            v = G[i, j]
+            for k in range(j):
+                v -= G[i, k] * G[j, k]
+            G[i, j] = v / d
+    # forward and back substitution
+    y = np.empty(P)
+    for i in range(P):
+        v = rhs[i]
+        for k in range(i):
+            v -= G[i, k] * y[k]
+        y[i] = v / G[i, i]
     sol = np.empty(P)
+    for i in range(P - 1, -1, -1):
+        v = y[i]
+        for k in range(i + 1, P):
+            v -= G[k, i] * sol[k]
+        sol[i] = v / G[i, i]
+    # diag(G^-1) = column sums of squares of L^-1
+    Li = np.zeros((P, P))
+    for j in range(P):
+        Li[j, j] = 1.0 / G[j, j]
+        for i in range(j + 1, P):
+            v = 0.0
+            for k in range(j, i):
+                v -= G[i, k] * Li[k, j]
+            Li[i, j] = v / G[i, i]
     dinv = np.empty(P)
-    if not _cholesky_solve(G, rhs, sol, dinv):
-        return np.nan
+    for j in range(P):
+        v = 0.0
+        for i in range(j, P):
+            v += Li[i, j] * Li[i, j]
+        dinv[j] = v
     dot = 0.0  # a loop: numba's np.dot compiles a BLAS wrapper (a second of a first run)
     for i in range(P):
         dot += sol[i] * rhs[i]
@@ -311,31 +307,13 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     return math.sqrt(rss / max(N - P, 1))
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def transfer(m, B, w, sigma):
     """``K_m``: the line box, the pixel box and the blur at harmonic ``m / B``."""
     return _sinc(m * w / B) * _sinc(m / B) * math.exp(-2.0 * (math.pi * sigma * m / B) ** 2)
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _inv3(a):
-    """Inverse of a symmetric 3x3 matrix by cofactors (NaN when singular)."""
-    inv = np.empty((3, 3))
-    inv[0, 0] = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
-    inv[0, 1] = a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]
-    inv[0, 2] = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
-    inv[1, 1] = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
-    inv[1, 2] = a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]
-    inv[2, 2] = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-    inv[1, 0], inv[2, 0], inv[2, 1] = inv[0, 1], inv[0, 2], inv[1, 2]
-    det = a[0, 0] * inv[0, 0] + a[0, 1] * inv[1, 0] + a[0, 2] * inv[2, 0]
-    if not (abs(det) > 1e-300):
-        inv[:, :] = np.nan
-        return inv
-    return inv / det
-
-
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def _pulse_fit(coef, M, B, K, hfx):
     """Gauss-Newton fit of ``(h, f, x0)`` to the harmonics; returns (JtJ^-1 diag, misfit).
 
@@ -343,11 +321,19 @@ def _pulse_fit(coef, M, B, K, hfx):
     ``[var_h, var_f, var_x0, rms misfit]`` per unit variance of a coefficient part.
     """
     h, f, x0 = hfx[0], hfx[1], hfx[2]
-    out = np.full(4, np.nan)
-    JtJ = np.zeros((3, 3))
+    out = np.empty(4)
+    for a in range(4):
+        out[a] = np.nan
+    # scratch allocated once, cleared by loops (slice assignments compile kernels of their own)
+    JtJ = np.empty((3, 3))
+    Jtr = np.empty(3)
+    inv = np.empty((3, 3))
+    step = np.empty(3)
     for _it in range(30):
-        JtJ[:, :] = 0.0
-        Jtr = np.zeros(3)
+        for a in range(3):
+            Jtr[a] = 0.0
+            for b in range(3):
+                JtJ[a, b] = 0.0
         # exp(i th_m) and exp(i pi m f) by rotation, harmonic by harmonic
         th1 = -2.0 * math.pi * x0 / B
         c1, s1 = math.cos(th1), math.sin(th1)
@@ -371,11 +357,23 @@ def _pulse_fit(coef, M, B, K, hfx):
                 Jtr[a] += jr[a] * rr + ji[a] * ri
                 for b in range(3):
                     JtJ[a, b] += jr[a] * jr[b] + ji[a] * ji[b]
-        inv = _inv3(JtJ)
-        if not np.isfinite(inv[0, 0]):
+        # inverse of the symmetric JtJ by cofactors (singular: no fit)
+        a_ = JtJ
+        inv[0, 0] = a_[1, 1] * a_[2, 2] - a_[1, 2] * a_[2, 1]
+        inv[0, 1] = a_[0, 2] * a_[2, 1] - a_[0, 1] * a_[2, 2]
+        inv[0, 2] = a_[0, 1] * a_[1, 2] - a_[0, 2] * a_[1, 1]
+        inv[1, 1] = a_[0, 0] * a_[2, 2] - a_[0, 2] * a_[2, 0]
+        inv[1, 2] = a_[0, 2] * a_[1, 0] - a_[0, 0] * a_[1, 2]
+        inv[2, 2] = a_[0, 0] * a_[1, 1] - a_[0, 1] * a_[1, 0]
+        inv[1, 0], inv[2, 0], inv[2, 1] = inv[0, 1], inv[0, 2], inv[1, 2]
+        det = a_[0, 0] * inv[0, 0] + a_[0, 1] * inv[1, 0] + a_[0, 2] * inv[2, 0]
+        if not (abs(det) > 1e-300):
             return out
-        step = np.zeros(3)  # inv @ Jtr, as a loop (see harmonic_fit)
         for a in range(3):
+            for b in range(3):
+                inv[a, b] = inv[a, b] / det
+        for a in range(3):  # inv @ Jtr, as a loop (see harmonic_fit)
+            step[a] = 0.0
             for b in range(3):
                 step[a] += inv[a, b] * Jtr[b]
         h += step[0]
@@ -394,16 +392,14 @@ def _pulse_fit(coef, M, B, K, hfx):
         ri = coef[2 * m] - h * K[m] * S * math.sin(th)
         res += rr * rr + ri * ri
         tot += coef[2 * m - 1] ** 2 + coef[2 * m] ** 2
-    inv = _inv3(JtJ)
-    if not np.isfinite(inv[0, 0]):
-        return out
+    # inv is already JtJ's inverse: the last iteration computed both
     hfx[0], hfx[1], hfx[2] = h, f, x0
     out[0], out[1], out[2] = inv[0, 0], inv[1, 1], inv[2, 2]
     out[3] = math.sqrt(res / max(tot, 1e-300))
     return out
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, params, out):
     """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
 
@@ -566,7 +562,7 @@ def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, pa
     out[O_CODE] = OV_MEASURED
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **_NO_CFUNC)
 def _measure_all(rows, row, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, params, out,
                  k0, k1):  # fmt: skip
     for k in range(k0, k1):
@@ -619,7 +615,7 @@ def measure_stretches(
     return out
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _residual_at(x, lo, hi, B, M):
     coef = np.zeros(2 * M + 1)
     var_c = np.zeros(M + 1)
@@ -672,7 +668,7 @@ CONTINUATION_TOLERANCE = 0.3
 RUN_SPACING_TOLERANCE = 0.1
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _find_runs(bands, counts, min_bands, runs):
     """Runs of at least ``min_bands`` neighbouring overlap-rejected bands with centres.
 
@@ -699,7 +695,7 @@ def _find_runs(bands, counts, min_bands, runs):
     return m
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def _median(values):
     """``np.median`` of a short array (sorted in place by insertion: numba's median
     compiles a partition kernel, a second of a first run)."""
@@ -717,7 +713,7 @@ def _median(values):
     return values[n // 2] if n % 2 else 0.5 * (values[n // 2 - 1] + values[n // 2])
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _prepare_runs(bands, runs, m, tol, width, out):
     """Per run of one pattern: ``out[q] = (B, lo, hi, floor, width over B, floor spread)``, or
     NaN ``B`` when its centre spacings disagree (more than ``tol`` of their median) with each
@@ -757,7 +753,7 @@ def _prepare_runs(bands, runs, m, tol, width, out):
         out[q, 5] = top - floor if np.isfinite(floor) else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _lowest_levels(signals, row, lo, hi, reach, out):
     """Lowest mean of five neighbouring samples within ``reach[s]`` before, inside and
     within ``reach[s]`` after each stretch ``lo[s]:hi[s]`` of ``signals[row[s]]``
@@ -913,7 +909,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     return len(done)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _mark_runs(bands, pat, runs, done, sweep, B):
     """The measured runs' bands get their sweep, interval and ``BAND_PERIODIC``."""
     for q in done:
@@ -924,7 +920,7 @@ def _mark_runs(bands, pat, runs, done, sweep, B):
             bands[p, r, k, F_VALID] = BAND_PERIODIC
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _reject_continuations(bands, counts, pat, runs, done, B, pulse, tol):
     """Outwards from each end of the runs ``done``: the bands that continue their pulse
     train become ``BAND_OVERLAP`` (valid ones; the walk stops at the first that does not).

@@ -61,13 +61,13 @@ PHASES = 4
 MEASURED_PATH = Path(__file__).with_name("profile_measured.npz")
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
 def _G(t):
     """Antiderivative of the standard normal CDF: t Phi(t) + phi(t)."""
     return t * 0.5 * (1.0 + math.erf(t * _INV_SQRT2)) + math.exp(-0.5 * t * t) * _INV_SQRT2PI
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
 def _H(t):
     """Antiderivative of _G: ((t^2 + 1) Phi(t) + t phi(t)) / 2."""
     return 0.5 * (
@@ -76,7 +76,7 @@ def _H(t):
     )
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
 def profile(x, L, w):
     """Band profile at ``x`` (sigma = 1; plateau 1 for L > w): box(L) * box(w)/w * gauss(1)."""
     a = 0.5 * L
@@ -84,7 +84,7 @@ def profile(x, L, w):
     return (_G(x + a + b) - _G(x + a - b) - _G(x - a + b) + _G(x - a - b)) / (2.0 * b)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
 def pixel_value(d, L, w, sigma):
     """Pixel-integrated profile of a band centred ``d`` pixels away (camera px units)."""
     a = 0.5 * L
@@ -97,7 +97,7 @@ def pixel_value(d, L, w, sigma):
 
 
 # calls into bands.py: numba's cache would not see its changes
-@nb.njit(cache=False, error_model="numpy")
+@nb.njit(cache=False, error_model="numpy", no_cfunc_wrapper=True)
 def _simulate_detector(L, w, sigma, phase, out2):
     """Run the real band detector on three identical bands; (m, r) of the middle one."""
     # a static line (L = 0) is the limit of a tiny sweep: box(L) * box(w) has no area
@@ -134,7 +134,7 @@ def _simulate_detector(L, w, sigma, phase, out2):
 # first depth picture of a first run (the tables are built once per machine).
 
 
-@nb.njit(cache=False, error_model="numpy", nogil=True)
+@nb.njit(cache=False, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _measure_table(s_axis, w_axis, l_axis, m_out, r_out, lo, hi):
     nw, nl = w_axis.shape[0], l_axis.shape[0]
     for idx in range(lo, hi):
@@ -155,7 +155,7 @@ def _measure_table(s_axis, w_axis, l_axis, m_out, r_out, lo, hi):
             r_out[i, j, k] = sr / cnt if cnt else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _invert_table(m_tab, l_axis, m_axis, out, lo, hi):
     """Per (sigma, w) cell ``lo .. hi``: L at each m of ``m_axis`` where m(L) informs."""
     nw, nl = m_tab.shape[1:]
@@ -182,7 +182,7 @@ def _invert_table(m_tab, l_axis, m_axis, out, lo, hi):
                     break
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
 def _joint_cell(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, idx):
     """One (sigma, w) cell of :func:`_joint_table`."""
     nw, nl = m_tab.shape[1:]
@@ -277,7 +277,7 @@ def _joint_cell(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, idx):
             out[i, j, a, b] = cl[bq[b]] if bq[b] >= 0 else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, lo, hi):
     """Per (sigma, w): the sweep that best explains a measured (width, ramp) pair.
 
@@ -290,7 +290,7 @@ def _joint_table(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, lo, hi):
         _joint_cell(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, idx)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
 def joint_at(table, s_lo, s_step, w_step, m_step, r_step, sigma, w, m, r):
     """Sweep from (width ``m``, ramp ``r``) for ``sigma`` and line width ``w`` (4-linear).
 
@@ -326,13 +326,13 @@ def joint_at(table, s_lo, s_step, w_step, m_step, r_step, sigma, w, m, r):
 
 # the lookups of the blur fit are serial: a few thousand bands per call, and numba's
 # parallel layer stalled for up to a second under load (once per blur refit, live)
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _joint_many(table, s_lo, s_step, sigma, w, m, r, out):
     for k in range(m.shape[0]):
         out[k] = joint_at(table, s_lo, s_step, W_STEP, M_STEP, R_STEP, sigma[k], w[k], m[k], r[k])
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
 def trilinear_at(table, lo0, st0, step1, step2, x0, x1, x2):
     """One trilinear lookup; axis 0 from ``lo0`` in steps ``st0`` (clamped), the others from 0."""
     n0, n1, n2 = table.shape
@@ -358,7 +358,7 @@ def trilinear_at(table, lo0, st0, step1, step2, x0, x1, x2):
     return acc
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _trilinear(table, ax0, step1, step2, x0, x1, x2, out):
     f0 = x0.ravel()
     f1 = x1.ravel()

@@ -50,12 +50,12 @@ PRIM_SIZE = 32
 EPS = 1e-6
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", no_cfunc_wrapper=True)
 def _dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _sample_texture(tex, s, t):
     # s, t in [0, 1); bilinear
     h, w = tex.shape
@@ -75,7 +75,7 @@ def _sample_texture(tex, s, t):
     )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _intersect(p, ox, oy, oz, dx, dy, dz, t, tex):
     """Ray distance, normal, albedo of primitive row ``p`` at time ``t`` (inf if missed)."""
     kind = int(p[0])
@@ -183,7 +183,7 @@ def _intersect(p, ox, oy, oz, dx, dy, dz, t, tex):
     return inf, 0.0, 0.0, 0.0, 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _trace(prims, ox, oy, oz, dx, dy, dz, t, tex, tmax):
     best = tmax
     bi = -1
@@ -324,7 +324,7 @@ def pack_projector(R, t, K, dist, width: int, height: int) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _lens_lookup(lens, table, xn, yn):
     """Distorted ``(x, y)`` of undistorted normalised ``(xn, yn)`` from a lens table.
 
@@ -365,7 +365,7 @@ def _lens_lookup(lens, table, xn, yn):
     return xd, yd
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _project_u(pp, X, Y, Z):
     """Projector pixel (u, v) of a camera-frame point; ``pp`` from :func:`pack_projector`."""
     px = pp[0] * X + pp[1] * Y + pp[2] * Z + pp[9]
@@ -377,7 +377,7 @@ def _project_u(pp, X, Y, Z):
     return pp[12] * xd + pp[13] * yd + pp[14], pp[15] * yd + pp[16]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _lit_by(prims, tex, pp, centre, size, X, Y, Z, nx, ny, nz, t):
     """Whether projector ``pp`` lights the point: ``(u, cos incidence, distance^2)``.
 
@@ -401,7 +401,7 @@ def _lit_by(prims, tex, pp, centre, size, X, Y, Z, nx, ny, nz, t):
     return u, cosi, dist2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _line_light(foot, u, sigma):
     """Light of a line set (footprints ``(n, 2)``) at column ``u`` with Gaussian defocus."""
     n = foot.shape[0]
@@ -424,7 +424,7 @@ def _line_light(foot, u, sigma):
     return total
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _pixel_mc(
     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
@@ -488,7 +488,7 @@ def _pixel_mc(
     return acc0 / samples, acc1 / samples, acc2 / samples
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, no_cfunc_wrapper=True)
 def render_exposure(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
@@ -541,7 +541,7 @@ MIN_WIDTH = 0.02
 _SQRT_PI = math.sqrt(math.pi)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", no_cfunc_wrapper=True)
 def _erf_antiderivative(n, x):
     """The n-th antiderivative of erf (n = 0..3), zero constants chosen so F_n' = F_{n-1}."""
     e = math.erf(x)
@@ -555,7 +555,7 @@ def _erf_antiderivative(n, x):
     return (2.0 * x * x * x + 3.0 * x) * e / 12.0 + (x * x + 1.0) * g / 6.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def box_erf_mean(k, lo, w, n):
     """Mean of ``erf(k u)`` for ``u = lo + sum_i w[i] s_i`` over the unit cube of ``s``.
 
@@ -591,7 +591,7 @@ def box_erf_mean(k, lo, w, n):
     return total / den
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _line_light_box(foot, u0, w3, sigma, wbuf):
     """Mean light of a line set over u = u0 + sum_i w3[i] (s_i - 1/2), s in the unit cube."""
     n = 0
@@ -627,7 +627,7 @@ def _line_light_box(foot, u0, w3, sigma, wbuf):
     return total
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy, t, st):
     """Fill ``st`` = (signature, albedo, u_0, irr_0, u_1, irr_1, ...) of the ray at time t.
 
@@ -664,7 +664,7 @@ def _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy, 
     st[1] = alb
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, no_cfunc_wrapper=True)
 def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, times, r0, states):
     """States (see :func:`_point_state`) of the pixel-centre rays of rows ``r0 ..`` at ``times``.
 
@@ -702,7 +702,7 @@ def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, tim
                              times[kk], st[kk])  # fmt: skip
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def _segment_exact(
     states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain,
     proj_black, defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
@@ -750,7 +750,7 @@ def _segment_exact(
             acc[2] += crosstalk[2, c] * light
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, no_cfunc_wrapper=True)
 def render_exposure_fast(
     rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
@@ -843,7 +843,7 @@ def render_exposure_fast(
         mc_count[i] = n_mc
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, no_cfunc_wrapper=True)
 def render_truth(
     rays, prims, tex, projs, proj_centre, proj_size, t, row_lo, row_hi, depth, obj, lit
 ):  # fmt: skip
@@ -891,7 +891,7 @@ def stratified_offsets(samples: int, seed: int = 0) -> np.ndarray:
     return np.stack([t, ox, oy], axis=1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True)
 def project_to_projector(pp, points):
     """Projector pixels ``(n, 2)`` of camera-frame ``points`` ``(n, 3)`` with the kernel's model.
 
