@@ -273,7 +273,9 @@ def _erode_rows(dilated, rows, r, out, i0, i1):
     for i in range(i0, i1):
         y = rows[i]
         o = out[i]
-        o[:] = dilated[max(0, y - r)]
+        first = dilated[max(0, y - r)]
+        for j in range(o.shape[0]):  # a loop: see sliding_mid
+            o[j] = first[j]
         for yy in range(max(0, y - r) + 1, min(h - 1, y + r) + 1):
             src = dilated[yy]
             for j in range(o.shape[0]):
@@ -349,8 +351,11 @@ def sliding_mid(x, win, out):
     for j in range(full * q + 1, n):
         bmax[full] = max(bmax[full], x[j])
         bmin[full] = min(bmin[full], x[j])
-    wmax[:] = bmax
-    wmin[:] = bmin
+    # loops, not wmax[:] = bmax: a slice assignment makes numba compile its
+    # shape-mismatch message (1.5 s of a cold start's CPU)
+    for b in range(nb_):
+        wmax[b] = bmax[b]
+        wmin[b] = bmin[b]
     for c in range(1, r + 1):
         for b in range(nb_ - c):
             wmax[b] = max(wmax[b], bmax[b + c])
