@@ -256,16 +256,19 @@ class RecordedFrames:
                         mosaic[k // 2 :: 2, k % 2 :: 2] = img[k // 2 :: 2, k % 2 :: 2, c]
                     img = mosaic
                 elif pixel_format != PIXEL_RGB8:
-                    img = np.zeros((height, width), np.uint8)  # no conversion: a black frame
+                    # a black frame, said once: an exception here would only be printed
+                    print(f"--frames-from: pixel format {pixel_format:#010x} is not converted "
+                          "(RGB8, Mono8 and 8-bit Bayer are): black frames", file=sys.stderr)
+                    out = [bytes(width * height)] * len(self.images)
+                    break
                 out.append(np.ascontiguousarray(img).tobytes())
             self.converted[key] = out
         return self.converted[key]
 
     def fill(self, buffer, _data, _exposure_us, _gain, pixel_format) -> None:
         lib, ctypes = self._lib, self._ctypes
-        width, height = lib.arv_buffer_get_image_width(buffer), lib.arv_buffer_get_image_height(
-            buffer
-        )
+        width = lib.arv_buffer_get_image_width(buffer)
+        height = lib.arv_buffer_get_image_height(buffer)
         data = self.frames(width, height, int(pixel_format))[self.sent % len(self.images)]
         self.sent += 1
         # the buffer holds the payload of this size and format; its received size is
