@@ -35,8 +35,55 @@ from lightflow.app.status import CAUSE_PREFIX
 _END = object()
 #: how often camera.stats() is read on the capture thread
 CAMERA_STATS_INTERVAL_S = 0.5
-#: smoothing of the fps and MiB/s estimates (weight of the newest sample)
+#: smoothing of the fps estimate (weight of the newest sample)
 EMA_ALPHA = 0.1
+#: the camera's data rate is the bytes delivered over the last RATE_WINDOW_S seconds ...
+RATE_WINDOW_S = 1.0
+#: ... and is not reported before the frames it counts span this long: a replay's
+#: read-ahead hands its first frames over microseconds apart, which is no data rate
+RATE_MIN_SPAN_S = 0.25
+
+
+class RateMeter:
+    """The data rate of a stream, in MiB/s, over a sliding window of arrival times.
+
+    An average of per-frame rates (bytes over the gap since the previous frame)
+    is dominated by the shortest gaps: a burst of frames handed over at once
+    reads as thousands of MiB/s.  Bytes over the window's span are not.
+
+    Parameters
+    ----------
+    window_s : float
+        Length of the window in seconds.
+    min_span_s : float
+        Shortest span of arrivals that gives a rate; before that :meth:`add` returns 0.
+    """
+
+    def __init__(self, window_s: float = RATE_WINDOW_S, min_span_s: float = RATE_MIN_SPAN_S):
+        self.window_s = window_s
+        self.min_span_s = min_span_s
+        self._arrivals: collections.deque[tuple[float, int]] = collections.deque()
+        self._bytes = 0  # bytes in the window, the oldest arrival included
+
+    def add(self, t: float, nbytes: int) -> float:
+        """Count ``nbytes`` arriving at time ``t`` (seconds) and return the rate in MiB/s.
+
+        Returns
+        -------
+        float
+            Bytes that arrived after the window's oldest arrival, over the time
+            since it, in MiB/s; 0 while the arrivals span less than ``min_span_s``.
+        """
+        self._arrivals.append((t, nbytes))
+        self._bytes += nbytes
+        # keep one arrival at or before the window's start: it opens the span
+        while len(self._arrivals) > 2 and self._arrivals[1][0] <= t - self.window_s:
+            self._bytes -= self._arrivals.popleft()[1]
+        t_first, n_first = self._arrivals[0]
+        span = t - t_first
+        if span < self.min_span_s:
+            return 0.0
+        return (self._bytes - n_first) / 2**20 / span
 
 
 class DropOldestQueue:
@@ -279,7 +326,7 @@ class Runner:
     def _capture(self) -> None:
         q = self.frames_q
         last_index: int | None = None
-        last_t: float | None = None
+        meter = RateMeter()
         next_stats = 0.0
         count = 0
         frames = None
@@ -296,10 +343,8 @@ class Runner:
                     gap = last_index is not None and frame.index > last_index + 1
                     if gap and self.count_gaps:
                         s.camera_lost += frame.index - last_index - 1
-                    if last_t is not None and now > last_t:
-                        rate = nbytes / 2**20 / (now - last_t)
-                        s.mib_per_s = rate if s.mib_per_s == 0 else _ema(s.mib_per_s, rate)
-                last_index, last_t = frame.index, now
+                    s.mib_per_s = meter.add(now, nbytes)
+                last_index = frame.index
                 if now >= next_stats:
                     next_stats = now + CAMERA_STATS_INTERVAL_S
                     self._update_camera_stats()

@@ -46,7 +46,9 @@ CAMERA_FIELDS = (
 def format_status(stats: RunStats, total: int | None = None) -> str:
     """The status line text (no newline), e.g. ``frame 12/40  29.8 fps  ...``."""
     done = f"frame {stats.frames_done}/{total}" if total else f"{stats.frames_done} frames"
-    parts = [done, f"{stats.fps:5.1f} fps", f"{stats.mib_per_s:6.1f} MiB/s"]
+    # no rate yet (see RateMeter): a dash, not a number
+    rate = f"{stats.mib_per_s:6.1f}" if stats.mib_per_s > 0 else "     –"
+    parts = [done, f"{stats.fps:5.1f} fps", f"{rate} MiB/s"]
     parts.append(f"latency {stats.latency_ms:4.0f} ms")
     if "coverage" in stats.extra:
         # not eval's "coverage" (moving lit pixels with depth): see the module docstring
