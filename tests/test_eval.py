@@ -256,6 +256,7 @@ def test_matrix_rigs_span_the_geometry_users_build():
     assert {c.exposure_s for c in cases if c.scene == "fan-1ms"} == {0.001}
     assert {c.exposure_s for c in cases if "ball" in c.scene} == {0.005, 0.008}
     assert {c.exposure_s for c in cases if "newspaper" in c.scene} == {0.3}
+    assert {c.exposure_s for c in cases if c.scene == "slow-board"} == {0.3}  # the paper's
     # the first rig again with a camera gamma and a defocus disc (unmodelled physics)
     physics = {dict(c.sensor).get("camera_gamma", 1.0) for c in cases if c.sensor}
     assert 2.2 in physics

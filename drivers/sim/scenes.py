@@ -234,6 +234,8 @@ SCENES: dict[str, Scene] = {
               "(frames at 1 fps: for `lightflow rig blur`)", 0.02, True, 3.0),
         Scene("newspaper-board", "printed (newspaper) board along the axis (paper: 300 ms)",
               0.3, True, 1.0 / SLOW),
+        Scene("slow-board", "white board moving slowly along the optical axis, 0.6-0.9 m "
+              "(paper: 300 ms)", 0.3, True, 1.0 / SLOW),
         Scene("fan-1ms", "a spinning fan in front of a static wall (paper: 1 ms)", 0.001, False,
               0.1),
         Scene("fan", "a spinning fan in front of a static wall", 0.002, False, 0.1),
@@ -258,6 +260,7 @@ _BUILDERS = {
     "still-board": _still_board,
     "board-steps": _board_steps,
     "newspaper-board": lambda t: _board(t, texture=1, speed=BOARD_SPEED * SLOW),
+    "slow-board": lambda t: _board(t, speed=BOARD_SPEED * SLOW),
     "fan-1ms": _fan,
     "fan": _fan,
     "ball-wall": _ball_wall,
