@@ -13,7 +13,7 @@ from rerun.chunk import RrdReader
 from lightflow.app.core.errors import ConfigError, DriverError
 from lightflow.app.core.results import BandSet, FrameResult, RunStats
 from lightflow.app.core.rig import load_rig
-from lightflow.app.sinks.rerun_sink import RerunSink
+from lightflow.app.sinks.rerun_sink import RerunSink, lookup_u16
 from lightflow.drivers.base import Frame
 
 RIG_FILE = Path(__file__).resolve().parents[1] / "app" / "rigs" / "two-projector.json"
@@ -142,6 +142,14 @@ def test_rrd_compressed_image(tmp_path, rig):
     ent = chunks_by_entity(path)
     blob = bytes(column(ent["/world/camera/image"], "EncodedImage:blob")[0][0])
     assert blob[:2] == b"\xff\xd8"  # JPEG
+
+
+def test_overlay_lookup_equals_take():
+    rng = np.random.default_rng(3)
+    table = rng.integers(0, 256, 65536).astype(np.uint8)
+    index = rng.integers(0, 65536, (37, 53)).astype(np.uint16)
+    index[0, :3] = (0, 65535, 1)
+    assert np.array_equal(lookup_u16(table, index), np.take(table, index))
 
 
 def test_bad_options(rig, monkeypatch):

@@ -51,6 +51,7 @@ import uuid
 from pathlib import Path
 
 import cv2
+import numba as nb
 import numpy as np
 import pyarrow as pa
 
@@ -59,6 +60,7 @@ from lightflow.app.core.errors import ConfigError, DriverError
 from lightflow.app.core.geometry import camera_rays
 from lightflow.app.core.results import BandSet, FrameResult, RunStats
 from lightflow.app.core.rig import Rig
+from lightflow.app.core.threads import run_rows
 from lightflow.app.evaluation import coverage
 from lightflow.app.sinks.ply import depth_to_points, image_to_rgb8
 
@@ -151,6 +153,36 @@ def depth_levels(depth_mm_max: int, near: float, far: float, levels: int) -> np.
     table = np.clip(level, 1, levels).astype(np.uint8)
     table[0] = 0
     return table
+
+
+def lookup_u16(table: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``table[index]`` for a 2D uint16 ``index`` (``np.take``'s result), in bands of rows.
+
+    ``np.take`` first widens every index to int64 (15 MB for a 1600x1200 image) and
+    took 5-6 ms per frame; this reads the uint16 values as they are.
+
+    Parameters
+    ----------
+    table : numpy.ndarray
+        ``(65536,)`` values.
+    index : numpy.ndarray
+        ``(h, w)`` uint16.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w)`` of ``table``'s dtype.
+    """
+    out = np.empty(index.shape, table.dtype)
+    run_rows(_lookup_rows, index.shape[0], table, index, out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _lookup_rows(table, index, out, r0, r1):
+    for i in range(r0, r1):
+        for j in range(index.shape[1]):
+            out[i, j] = table[index[i, j]]
 
 
 def raw_image(kind, array: np.ndarray, color_model: str | None = None, **fields):
@@ -761,7 +793,7 @@ class RerunSink:
         ))  # fmt: skip
         # over the camera image: the same colours, see-through, and nothing where no depth
         rec.log("world/camera/depth_overlay", raw_image(
-            rr.SegmentationImage, np.take(self._overlay_ids, depth_mm),
+            rr.SegmentationImage, lookup_u16(self._overlay_ids, depth_mm),
             opacity=OVERLAY_ALPHA / 255.0, draw_order=1.0,
         ))  # fmt: skip
         # the points of the analysis grid: the depth's own samples (the full-resolution
