@@ -133,6 +133,11 @@ class FlowMaps:
         bool: both patterns' bands in the cell are measurably wider than a line
         standing still (above the measure floor), whether or not they pass the
         moving test: lines that move, if too little for a flow.
+    readings : tuple of numpy.ndarray, optional
+        Each cell's own reading of its bands, before the sweeps are averaged over
+        cells (``_sweeps``' outputs: sweeps, moving_at, pitch, sens,
+        interval_ratio, banded, why): :meth:`FlowModel.reread` reads again only the
+        cells whose intervals it corrects.
     """
 
     log_ratio: np.ndarray
@@ -142,6 +147,7 @@ class FlowMaps:
     lr_sys: np.ndarray
     why: np.ndarray
     swept: np.ndarray
+    readings: tuple | None = None
 
 
 #: the per-band ramp solve of :func:`fit_blur` comes out about 10 % low in sigma (noisy
@@ -178,8 +184,8 @@ CALIBRATED_BLUR_REL_ERROR = 0.05
 def _sweeps(
     grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
-    static_factor, static_margin, blur_known, blur_rel_error, still_depth, periodic, sweeps,
-    moving_at, pitch, interval_ratio, banded, sens, why, i0, i1,
+    static_factor, static_margin, blur_known, blur_rel_error, still_depth, periodic, todo,
+    sweeps, moving_at, pitch, interval_ratio, banded, sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
 
@@ -195,12 +201,15 @@ def _sweeps(
     lo_margin``) or whose bands fill the interval get NaN, unless ``periodic[p]`` marks
     the cell's sweep as measured on the periodic profile of overlapping bands.  Grid
     rows ``i0 .. i1`` only (the kernels of this module run bands of rows on a thread per
-    core).
+    core).  Only the cells where ``todo`` is true are read; the others keep what the
+    outputs hold.
     """
     gw = interval_ratio.shape[1]
     nu = u_of.shape[0]
     for i in range(i0, i1):
         for j in range(gw):
+            if not todo[i, j]:
+                continue
             interval_ratio[i, j] = np.nan
             banded[i, j] = 0.0
             why[i, j] = cz.DEPTH
@@ -558,7 +567,8 @@ class FlowModel:
         """
         fixed = grids.copy()
         fixed[:, 1] *= np.exp(-fix)
-        second = self.recombine(fixed, params, periodic)
+        # a cell without a correction reads as before (the same inputs): not read again
+        second = self.recombine(fixed, params, periodic, first.readings, (fix != 0).any(axis=0))
         again = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
         log_ratio = np.where(again, second.log_ratio, first.log_ratio + fix[0] - fix[1])
         flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
@@ -567,20 +577,30 @@ class FlowModel:
                         first.lr_sys, first.why, first.swept)  # fmt: skip
 
     def recombine(self, grids: np.ndarray, params: FlowParams,
-                  periodic: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
-        """:meth:`combine` without touching the blur model (for :meth:`reread`)."""
+                  periodic: np.ndarray | None = None, readings: tuple | None = None,
+                  todo: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
+        """:meth:`combine` without touching the blur model (for :meth:`reread`).
+
+        With ``readings`` (a :class:`FlowMaps`' own) and ``todo`` (bool per cell), only
+        the cells in ``todo`` are read from ``grids``; the others keep their readings.
+        """
         tab = tables()
         still = self.still_depth(params)
         gh, gw = grids.shape[2:]
         if periodic is None:
             periodic = np.zeros((2, gh, gw), np.bool_)
-        sweeps = np.empty((2, gh, gw), np.float32)
-        moving_at = np.empty((2, gh, gw), np.float32)
-        pitch = np.ones((2, gh, gw), np.float32)
-        sens = np.empty((2, gh, gw), np.float32)
-        interval_ratio = np.empty((gh, gw), np.float32)
-        banded = np.empty((gh, gw), np.float32)
-        why = np.empty((gh, gw), np.uint8)
+        if readings is None:
+            sweeps = np.empty((2, gh, gw), np.float32)
+            moving_at = np.empty((2, gh, gw), np.float32)
+            pitch = np.ones((2, gh, gw), np.float32)
+            sens = np.empty((2, gh, gw), np.float32)
+            interval_ratio = np.empty((gh, gw), np.float32)
+            banded = np.empty((gh, gw), np.float32)
+            why = np.empty((gh, gw), np.uint8)
+            todo = np.ones((gh, gw), np.bool_)
+        else:
+            sweeps, moving_at, pitch, sens, interval_ratio, banded, why = (
+                a.copy() for a in readings)  # fmt: skip
         measured = self.blur_measured
         # bands of grid rows on a thread per core (the kernels release the GIL)
         run_rows(
@@ -591,10 +611,11 @@ class FlowModel:
             params.measure_factor, params.measure_margin_px,
             params.calibrated_static_factor if measured else params.static_factor,
             params.calibrated_static_margin_px if measured else params.static_margin_px,
-            self._fitted, self.blur_rel_error, still, periodic, sweeps, moving_at,
-            pitch,
-            interval_ratio, banded, sens, why,
+            self._fitted, self.blur_rel_error, still, periodic, todo, sweeps, moving_at,
+            pitch, interval_ratio, banded, sens, why,
         )  # fmt: skip
+        # what each cell read, before the decision below changes its cause
+        read = (sweeps, moving_at, pitch, sens, interval_ratio, banded, why.copy())
         swept = np.isfinite(sweeps[0]) & np.isfinite(sweeps[1])
         # Average the sweeps themselves over a few cells before any decision or log:
         # a short sweep is noisy, and both thresholding it and taking its log bias it
@@ -617,7 +638,7 @@ class FlowModel:
             lr_var, lr_sys, why,
         )  # fmt: skip
         return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why,
-                        swept)  # fmt: skip
+                        swept, read)  # fmt: skip
 
     def replace_previous(self, grids: np.ndarray) -> None:
         """The previous frame's grids measured again (the camera's response changed):
