@@ -328,6 +328,24 @@ def test_runs_of_overlapping_bands_give_the_sweep_or_stay_rejected(B, w, sigma):
     assert periodic[False] >= rows[False]
 
 
+@pytest.mark.parametrize("w,sigma", [(3.0, 1.4), (4.0, 1.2)])
+def test_tight_valid_bands_get_their_periodic_sweep(w, sigma):
+    """Bands whose gaps are narrower than TIGHT_GAP_SIGMAS blur sigmas are valid alone
+    but read 1-6 % short (the neighbours' tails in the gap): their runs are measured on
+    the periodic profile, within 0.5 % (0.5 % at most, 0.05 % on average, measured).
+    Bands with wider gaps keep their own reading."""
+    B = 24.3
+    for u in (0.72, 0.76, 0.8):
+        for phase in (0.0, 0.25, 0.5, 0.75):
+            # (a run's outermost bands have no neighbour on one side: measured alone)
+            b = detect_and_measure_runs(B, w, sigma, u * B, phase)[2:-2]
+            assert np.all(b[:, F_VALID] == BAND_PERIODIC), (u, phase)
+            assert np.all(np.abs(b[:, F_LENGTH] / (u * B) - 1.0) <= 0.005), (u, phase)
+    for u in (0.5, 0.6):
+        b = detect_and_measure_runs(B, w, sigma, u * B, 0.3)[2:-2]
+        assert np.all(b[:, F_VALID] == 1.0), u
+
+
 @pytest.mark.parametrize("B,w,sigma", RUN_SETS[:3])
 def test_runs_next_to_a_darker_surface_stay_rejected(B, w, sigma):
     """The lines lie on a surface whose background is one pulse height above that of a
