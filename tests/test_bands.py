@@ -10,6 +10,7 @@ from lightflow.app.core.bands import (
     F_INTERVAL,
     F_LENGTH,
     F_RAMP,
+    F_SLANT,
     F_VALID,
     N_FIELDS,
     BandParams,
@@ -17,6 +18,7 @@ from lightflow.app.core.bands import (
     estimate_leak,
     fill_print,
     histogram_median,
+    upright_tiles,
 )
 from lightflow.app.core.profile_model import fit_blur, pixel_value, tables
 
@@ -680,3 +682,32 @@ def test_sweeps_of_half_a_line_width_read_unbiased():
             worst = max(worst, abs(np.mean(np.concatenate(rec)) / L - 1))
     print(f"\nshort sweeps: worst mean error {100 * worst:.1f} %")
     assert worst <= 0.015
+
+
+def test_upright_tiles_judge_a_tile_by_the_mean_slant_of_its_bands():
+    """Single slants scatter (print, two rows a few rows apart): the tile's mean decides.
+
+    Left half: upright lines whose slants scatter by 0.04 with a few wild ones (print cut
+    their bands); right half: lines slanted by 0.08 (a tilted board), the same scatter.
+    """
+    rng = np.random.default_rng(4)
+    h, w, tile = 512, 1024, 128
+    row_y = np.arange(2, h, 4)
+    centres = np.arange(10.0, w, 20.0)
+    bands = np.full((len(row_y), 64, N_FIELDS), np.nan)
+    counts = np.full(len(row_y), len(centres))
+    bands[:, : len(centres), F_CENTRE] = centres
+    bands[:, : len(centres), F_VALID] = 1.0
+    slant = np.where(centres < w / 2, 0.0, 0.08) + rng.normal(0.0, 0.04, (len(row_y), len(centres)))
+    wild = rng.random(slant.shape) < 0.05
+    slant[wild] = rng.choice([-1.0, 1.0], wild.sum())
+    bands[:, : len(centres), F_SLANT] = slant
+    # no valid band in the last tile row: it is judged by those of the row above
+    bands[row_y >= 384, : len(centres), F_VALID] = -2.0
+    up = upright_tiles(bands, counts, row_y, (h, w), tile, 2.0 / 80)
+    assert up.shape == (4, 8)
+    assert up[:, :3].all()  # the upright half, and its tiles pooled with each other
+    assert not up[:, 5:].any()  # slanted: even pooled with an upright neighbour
+    # without any valid band near, no tile is upright
+    bands[:, : len(centres), F_VALID] = -2.0
+    assert not upright_tiles(bands, counts, row_y, (h, w), tile, 2.0 / 80).any()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -394,13 +395,15 @@ def test_lines_wider_than_the_model_get_a_warning_and_a_cause():
 def test_printed_board_keeps_its_bands():
     """Issue 8 section 5: newspaper print cut every band (cause "cut") before the print fill.
 
-    Measured here: median 7.4 mm, coverage 0.68 (8.8 mm on 0.55 without the fill).
+    Measured here: median 5.0 mm, coverage 0.83; 4.6 mm on 0.77 before photo blocks got
+    the long fill where lines stand upright (once 7.4 mm on 0.68, and 8.8 mm on 0.55
+    without any fill).
     """
     rig = load_rig(RIGS / "two-projector.json").scaled(0.5)
     ((truth, result),) = run(rig, "newspaper-board", frames=1, exposure_s=0.3)
     s = scores(rig, truth, result, "newspaper")
-    assert s["coverage"] >= 0.64
-    assert s["median_mm"] <= 8.5
+    assert s["coverage"] >= 0.8
+    assert s["median_mm"] <= 6.5
     assert s["off_object_px"] == 0
 
 
@@ -483,3 +486,79 @@ def test_a_webcam_fan_gets_its_gamma_from_the_wall_behind():
     assert median <= 8.0 and abs(signed) <= 4.0 and off <= 0.02
     _, median_linear, signed_linear, _ = scores(PipelineConfig(stride=STRIDE, camera_gamma=1.0))
     assert signed_linear > 20.0
+
+
+def _photo_page(slant: float, rng) -> np.ndarray:
+    """An 800x600 page of upright (or slanted) bands of both patterns, under text and a
+    photo block (rows 240-370, columns 200-600) of 13 px grey cells of albedo 0.2-0.8,
+    seen through a lens blur of 0.8 px.
+
+    Pattern 0 (red): interval 40 px, ramps 3 px, half-height width 15 px; pattern 1
+    (blue): interval 24 px, half-height width 9 px.
+    """
+    h, w = 600, 800
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    xs = x - slant * (y - h / 2)
+
+    def bands(interval, top):
+        u = xs % interval
+        return np.clip(np.minimum(u - 2.0, top - u) / 3.0, 0.0, 1.0)
+
+    albedo = np.full((h, w), 0.92)
+    # body text as in the scene: lines of glyphs 5 rows tall, 8 rows apart, 30 % ink
+    for line in range(4, h - 8, 8):
+        albedo[line : line + 5][rng.random((5, w)) < 0.3] = 0.12
+    cells = rng.uniform(0.2, 0.8, (10, 31))
+    albedo[240:370, 200:600] = np.kron(cells, np.ones((13, 13)))[:130, :400]
+    img = np.zeros((h, w, 3))
+    img[..., 0] = albedo * (12.0 + 200.0 * bands(40.0, 20.0))
+    img[..., 2] = albedo * (12.0 + 200.0 * bands(24.0, 14.0))
+    img[..., 1] = albedo * 12.0
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0.0, 1.0, img.shape)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _photo_bands(image, block_px):
+    """Per pattern, the valid bands' lengths in the photo block's rows and columns (away
+    from its edges), and their count there."""
+    from lightflow.app.core import bands as bd
+    from lightflow.app.core.bands import BandParams
+
+    rig = load_rig(RIGS / "two-projector.json").scaled(0.5)
+    pipe = DepthPipeline(rig, PipelineConfig(stride=STRIDE, bands=BandParams(
+        print_block_px=block_px)))  # fmt: skip
+    bands, counts, _ = pipe._measure(Frame(0, 0.0, 0.3, image, "page"), {})
+    rows = (pipe._row_y > 245) & (pipe._row_y < 365)
+    out = []
+    for p in range(2):
+        b = bands[p][rows]
+        n = np.arange(b.shape[1])[None, :] < counts[p][rows][:, None]
+        c = b[..., bd.F_CENTRE]
+        keep = n & (b[..., bd.F_VALID] > 0) & (c > 215) & (c < 585)
+        out.append(b[..., bd.F_LENGTH][keep])
+    return out
+
+
+def test_photo_block_keeps_its_bands_where_lines_stand_upright():
+    """Issue 8: a newspaper's photo block (grey cells larger than the print fill's 13 rows)
+    cut the bands under it.  Where there is print and the lines stand upright, dips up
+    to 81 rows are filled too, and the block's rows measured again.
+
+    Measured here: valid bands in the block 187 and 335 -> 261 and 463 (of 261 and 464
+    lines), median lengths 15.11 and 9.05 px (true 15 and 9), 90th percentile of the
+    length error 1.04 and 0.71 -> 0.61 and 0.32 px (the grey cells' envelope still
+    differs from column to column).  Slanted by 0.1 (a tilted board) the lines get no
+    long fill: the same bands with it and without.
+    """
+    rng = np.random.default_rng(11)
+    page = _photo_page(0.0, rng)
+    short = _photo_bands(page, 13)
+    long = _photo_bands(page, 81)
+    for p, (length, lines) in enumerate(((15.0, 261), (9.0, 464))):
+        assert len(short[p]) < 0.8 * lines
+        assert len(long[p]) >= 0.97 * lines
+        assert abs(np.median(long[p]) - length) < 0.2
+        assert np.percentile(np.abs(long[p] - length), 90) < 0.7
+    slanted = _photo_page(0.1, rng)
+    for a, b in zip(_photo_bands(slanted, 13), _photo_bands(slanted, 81), strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -28,6 +28,13 @@ from .rig import CHANNEL_INDEX, Rig
 from .threads import run_tasks
 
 MAX_BANDS_PER_ROW = 160
+#: print as long as a photo block is filled (``bands.print_block_px``) only in tiles of
+#: this many pixels where the lines stand upright
+BLOCK_TILE_PX = 128
+#: ... and where the short fill changed this share of the pixels (print is near): text
+#: 16-46 % of a tile on the tuning rigs' newspaper, a fan's blade edges 0-8 %, boards and
+#: balls 0-5 %
+BLOCK_PRINT_SHARE = 0.1
 #: the local spread of the sweeps over-counts independent bands (neighbouring rows see
 #: the same surface through the same blur): the random part of the predicted error is
 #: scaled by this (chosen on the tuning rigs of the evaluation matrix)
@@ -542,6 +549,7 @@ class DepthPipeline:
         if relearn:
             rows = np.union1d(rows, self._learning_rows(image.shape[0]))
         # only the rows the detector reads
+        raw = image
         image = bd.fill_print(image, cfg.bands.print_fill_px,
                               cfg.bands.min_contrast * self._full_scale, rows)  # fmt: skip
         if relearn:
@@ -554,6 +562,7 @@ class DepthPipeline:
             image, weights, self._row_y, self._windows, self._rows_per_cell,
             self._buffers if buffers is None else buffers,
         )  # fmt: skip
+        image = self._fill_blocks(raw, image, weights, bands, counts)
         t2 = time.perf_counter()
         timings["bands"] = (t2 - t1) * 1e3
         k = self._rows_per_cell
@@ -578,6 +587,93 @@ class DepthPipeline:
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
         timings["bands"] += (time.perf_counter() - t3) * 1e3
         return bands, counts, grids
+
+    def _fill_blocks(self, raw, image, weights, bands, counts):
+        """Fill print as long as a photo block where there is print and lines stand upright,
+        and measure those rows again.
+
+        The short fill (``print_fill_px``) is safe for any line.  A segment as long as
+        ``print_block_px`` is not: along a slanted line it crosses the gaps between its
+        bands, and beside a depth edge (a fan's blade) it joins the lines of two
+        surfaces.  So the long one is used only in tiles where the short fill found
+        print (:data:`BLOCK_PRINT_SHARE` of their pixels) and whose valid bands stand
+        upright (:func:`~lightflow.app.core.bands.upright_tiles`), only on the grid
+        cells where such a tile holds bands that were cut, irregular or overlapping,
+        and only where the dip keeps some light (a dip to the unlit level is a gap) and
+        the segment lies within the image.  The rows it changed are overwritten in
+        ``image`` (``raw`` filled short: its own array) and their ``bands`` and
+        ``counts`` measured again.  Cost at 1600x1200: about 1 ms a frame without print
+        (the share of print per tile), more where there is.
+
+        Returns
+        -------
+        numpy.ndarray
+            The image the bands were measured on.
+        """
+        cfg = self.config
+        length = cfg.bands.print_block_px
+        if length <= cfg.bands.print_fill_px or image is raw:
+            return image
+        row_y = self._row_y
+        h, w = raw.shape[:2]
+        tile = BLOCK_TILE_PX
+        printed = _print_tiles(raw, image, self._read_rows, tile)
+        if not printed.any():
+            return image
+        for p in range(2):
+            bd.band_slants(bands[p], counts[p], row_y)
+        # along the long segment an upright line moves by at most a pixel
+        limit = 2.0 / (length - 1)
+        up = [printed & bd.upright_tiles(bands[p], counts[p], row_y, (h, w), tile, limit)
+              for p in range(2)]
+        redo = np.zeros(len(row_y), bool)
+        for p in range(2):
+            if up[p].any():
+                redo |= _rejected_in(bands[p], counts[p], row_y, up[p], tile, w)
+        if not redo.any():
+            return image
+        # whole cells: the rows of a cell share one segmentation level
+        k = self._rows_per_cell
+        cells = np.flatnonzero(redo.reshape(-1, k).any(axis=1))
+        redo_rows = (cells[:, None] * k + np.arange(k)[None, :]).ravel()
+        extra = np.arange(-cfg.bands.vertical_extra, cfg.bands.vertical_extra + 1)
+        fill_rows = np.unique(np.clip(row_y[redo_rows][:, None] + extra, 0, h - 1))
+        long = bd.fill_print(raw, length, cfg.bands.min_contrast * self._full_scale, fill_rows)
+        noise = 3.0 * bd.column_noise(np.ascontiguousarray(raw).reshape(h, -1))
+        n_c = raw.shape[2]
+        before_rows = raw.reshape(h, -1)[fill_rows]
+        long_rows = long.reshape(h, -1)[fill_rows]
+        out_rows = image.reshape(h, -1)[fill_rows]
+        changed = np.zeros(len(fill_rows), bool)
+        for p in range(2):
+            c = self.channels[p]
+            before = np.ascontiguousarray(before_rows[:, c::n_c])
+            after = long_rows[:, c::n_c]
+            # the unlit level along the row (over the detector's window, two intervals):
+            # print keeps a share of the light, a dip down to that level is a gap
+            floor = cv2.erode(before, np.ones((1, int(self._windows[p])), np.uint8))
+            lit = before.astype(np.int32) - floor
+            keep = (8 * lit > after.astype(np.int32) - floor) & (lit > noise)
+            keep &= np.repeat(up[p][fill_rows // tile], tile, axis=1)[:, :w]
+            # near the image's border the segment is cut short: its envelope spans fewer
+            # of a photo block's cells, and the bands read too unevenly
+            keep[(fill_rows < length // 2) | (fill_rows >= h - length // 2)] = False
+            keep &= after != out_rows[:, c::n_c]
+            changed |= keep.any(axis=1)
+            np.copyto(out_rows[:, c::n_c], after, where=keep)
+        # (image is fill_print's own contiguous array: the reshape is a view)
+        image.reshape(h, -1)[fill_rows] = out_rows
+        # measured again only where the long fill changed what the detector reads (text
+        # alone is filled by the short one already)
+        read = np.clip(row_y[redo_rows][:, None] + extra, 0, h - 1)
+        again = np.isin(read, fill_rows[changed]).any(axis=1).reshape(-1, k).any(axis=1)
+        if not again.any():
+            return image
+        redo_rows = redo_rows.reshape(-1, k)[again].ravel()
+        sub = self._detect(image, weights, row_y[redo_rows], self._windows, k)
+        bands[:, redo_rows] = sub[0]
+        counts[:, redo_rows] = sub[1]
+        return image
 
     def _response_from_still_lines(self, frame, grids, timings):
         """Measure the camera's response on the lines that stood still since the last frame.
@@ -683,6 +779,55 @@ class DepthPipeline:
         return [f"{share:.0f} % of the lit pixels are out of the model's range: projected "
                 f"lines wider than the profile tables (16 camera px): use thinner lines "
                 f"(the patterns' width_px)"]  # fmt: skip
+
+
+def _print_tiles(raw, filled, rows, tile) -> np.ndarray:
+    """Tiles (``tile`` pixels) where the short print fill changed at least
+    :data:`BLOCK_PRINT_SHARE` of the values of ``rows``, pooled with the 8 tiles around.
+
+    ``filled``: ``raw`` after :func:`~lightflow.app.core.bands.fill_print` of ``rows``
+    (sorted).  The fill replaces a pixel's channels together, so the share of changed
+    values is that of changed pixels.
+    """
+    h, w = raw.shape[:2]
+    th, tw = -(-h // tile), -(-w // tile)
+    flat_raw = raw.reshape(h, -1)
+    changed = cv2.compare(filled.reshape(h, -1)[rows], flat_raw[rows], cv2.CMP_NE)
+    # sums over the rows of each tile row, then over each tile's columns
+    bounds = np.searchsorted(rows, np.arange(th + 1) * tile)
+    per_row = np.zeros((th, tw * tile * flat_raw.shape[1] // w), np.float32)
+    for t in range(th):
+        if bounds[t + 1] > bounds[t]:
+            # OpenCV's sum over rows: a tenth of the time of numpy's reduceat
+            per_row[t, : flat_raw.shape[1]] = cv2.reduce(
+                changed[bounds[t] : bounds[t + 1]], 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S)[0]
+    hits = per_row.reshape(th, tw, -1).sum(axis=2) / 255.0
+    n_rows = np.diff(bounds).astype(np.float32)
+    total = n_rows[:, None] * np.full(tw, tile * flat_raw.shape[1] // w, np.float32)
+    total[:, -1] -= n_rows * (tw * tile - w) * (flat_raw.shape[1] // w)
+    # pooled with the neighbours: a photo block's own tile may hold little text
+    hits = cv2.boxFilter(hits, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.boxFilter(total, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return hits >= BLOCK_PRINT_SHARE * np.maximum(total, 1.0)
+
+
+def _rejected_in(bands, counts, row_y, upright, tile, width) -> np.ndarray:
+    """Per measured row: does it hold a cut, irregular or overlapping band in an upright
+    tile (``upright``, tiles of ``tile`` pixels)?  Bands at the image border are cut by
+    it, not by print, and do not count."""
+    bands = bands[:, : max(1, int(counts.max(initial=0)))]  # the rest is unused scratch
+    n = np.arange(bands.shape[1])[None, :] < counts[:, None]
+    code = bands[..., bd.F_VALID]
+    start = bands[..., bd.F_START]
+    end = bands[..., bd.F_END]
+    border = (start <= 0) | (end >= width - 1) | (
+        (code == bd.BAND_CUT) & np.isnan(bands[..., bd.F_CENTRE]))
+    bad = n & ~border & ((code == bd.BAND_CUT) | (code == bd.BAND_IRREGULAR)
+                         | (code == bd.BAND_OVERLAP))  # fmt: skip
+    mid = np.nan_to_num(0.5 * (start + end))
+    col = np.clip(mid // tile, 0, upright.shape[1] - 1).astype(np.int64)
+    rows = np.broadcast_to((row_y // tile)[:, None], col.shape)
+    return (bad & upright[rows, col]).any(axis=1)
 
 
 def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.ndarray) -> BandSet:
