@@ -980,10 +980,13 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     # bands (and their floor like n = 0); those continuing a measured train are rejected
     # by now, and a tight run that holds one is not measured
     measured = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & tight)
-    still = np.array([bool((bands[pat[q], runs[q, 0], runs[q, 1] : runs[q, 2] + 1, F_VALID]
-                            == BAND_VALID).all()) for q in measured], bool)  # fmt: skip
-    _mark_runs(bands, pat, runs, measured[still] if len(measured) else measured,
-               out[:, O_SWEEP], B, True)  # fmt: skip
+    # every band of each (a tight run holds at most 2 MIN_RUN_BANDS - 1), in one gather: a
+    # Python loop over a frame's thousand runs took 1.3 ms
+    first, last = runs[measured, 1:2], runs[measured, 2:3]
+    k = first + np.arange(2 * MIN_RUN_BANDS - 1)
+    codes = bands[pat[measured, None], runs[measured, 0:1], np.minimum(k, last), F_VALID]
+    still = np.all((k > last) | (codes == BAND_VALID), axis=1)
+    _mark_runs(bands, pat, runs, measured[still], out[:, O_SWEEP], B, True)
     return len(done) + int(np.count_nonzero(still))
 
 
