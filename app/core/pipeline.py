@@ -25,6 +25,7 @@ from .intervals import IntervalModel
 from .profile_model import static_width_excess
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
+from .snapping import desnap_intervals, snap_offsets
 from .threads import run_tasks
 
 MAX_BANDS_PER_ROW = 160
@@ -91,6 +92,10 @@ class PipelineConfig:
         Measure the sweeps of runs of overlapping bands (rejected by the band
         detector) on their periodic profile (:func:`~lightflow.app.core.overlap.measure_runs`;
         rigs with uniform patterns).
+    whole_columns : bool
+        Uniform patterns: the projected lines sit on whole projector columns, so
+        their spacings alternate between the two whole numbers around the pitch; take
+        that out of each band's interval (:mod:`lightflow.app.core.snapping`).
     camera_gamma : float or "auto", optional
         The camera's response, ``DN = full * (light / full) ** (1 / gamma)``;
         default: the rig's (``camera.gamma``; 1, linear, when it gives none).  Unless it
@@ -112,6 +117,7 @@ class PipelineConfig:
     predict_intervals: bool = True
     interval_depth: bool = True
     measure_overlap: bool = True
+    whole_columns: bool = True
     camera_gamma: float | str | None = None
 
     def __post_init__(self):
@@ -200,6 +206,11 @@ class DepthPipeline:
             dtype=np.float64,
         )  # fmt: skip
         self._fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
+        # per pattern: where its lines really sit (None: not uniform, or not asked for)
+        self._snapping = [
+            snap_offsets(pat, proj.width) if cfg.whole_columns else None
+            for proj, pat in rig.patterns
+        ]
         # measured image rows: rows_per_cell rows around the centre of every grid cell
         s = cfg.stride
         k = max(1, min(b.rows_per_cell, s))
@@ -582,6 +593,10 @@ class DepthPipeline:
         timings["overlap"] = (t3 - t2) * 1e3
         for p in range(2):
             bd.band_slants(bands[p], counts[p], self._row_y)
+        # the two patterns on two threads (the kernel releases the GIL)
+        run_tasks(*(functools.partial(desnap_intervals, bands[p], counts[p],
+                                      float(self.rig.patterns[p][1].pitch_px), table)
+                    for p, table in enumerate(self._snapping) if table is not None))  # fmt: skip
         grids = np.empty((2, len(self._fields), gh, gw))
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])
