@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from lightflow.app.core.bands import F_CENTRE, F_INTERVAL, F_VALID, N_FIELDS
 from lightflow.app.core.patterns import line_centres, line_footprints
-from lightflow.app.core.rig import Pattern
-from lightflow.app.core.snapping import MIN_SPACINGS, desnap_intervals, snap_offsets
+from lightflow.app.core.rig import Pattern, resolve_rig
+from lightflow.app.core.snapping import MIN_SPACINGS, column_step, desnap_intervals, snap_offsets
 
 WIDTH = 1280
 PITCH = 25.82  # most neighbours 26 columns apart, every fifth or sixth 25
@@ -93,3 +95,25 @@ def test_short_runs_keep_their_intervals():
     before = bands[:, :, F_INTERVAL].copy()
     assert desnap_intervals(bands, counts, PITCH, snap_offsets(PATTERN, WIDTH)) == 0
     assert np.array_equal(bands[:, :, F_INTERVAL], before, equal_nan=True)
+
+
+def test_lines_met_in_decreasing_column_order_need_the_negative_step():
+    # a projector upside down: along the camera row the lines come last to first
+    lit = line_footprints(PATTERN, WIDTH).mean(axis=1)
+    nominal = line_centres(PATTERN, WIDTH)
+    k = np.arange(40, 10, -1)
+    bands, counts = _rows(_camera(WIDTH - lit[k]), noise=0.0)
+    truth = _true_intervals(WIDTH - nominal[k])
+    fixed = desnap_intervals(bands, counts, -PITCH, snap_offsets(PATTERN, WIDTH))
+    after = np.abs(bands[:, :30, F_INTERVAL] / truth - 1)
+    assert fixed == 9
+    assert np.percentile(after, 90) < 0.001
+
+
+def test_the_step_is_negative_for_a_projector_turned_upside_down():
+    rig = resolve_rig("two-projector")
+    proj, pat = rig.patterns[0]
+    assert column_step(rig.camera, proj, pat, 1.0) == pat.pitch_px
+    turn = np.diag([-1.0, -1.0, 1.0])  # half a turn about the projector's axis
+    upside_down = dataclasses.replace(proj, R=turn @ proj.R, t=turn @ proj.t)
+    assert column_step(rig.camera, upside_down, pat, 1.0) == -pat.pitch_px

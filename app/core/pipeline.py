@@ -25,7 +25,7 @@ from .intervals import IntervalModel
 from .profile_model import static_width_excess
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
-from .snapping import desnap_intervals, snap_offsets
+from .snapping import column_step, desnap_intervals, snap_offsets
 from .threads import run_tasks
 
 MAX_BANDS_PER_ROW = 160
@@ -206,10 +206,16 @@ class DepthPipeline:
             dtype=np.float64,
         )  # fmt: skip
         self._fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
-        # per pattern: where its lines really sit (None: not uniform, or not asked for)
+        # per pattern: where its lines really sit (None: not uniform, or not asked for),
+        # and the signed pitch from one band to the next along a row
         self._snapping = [
             snap_offsets(pat, proj.width) if cfg.whole_columns else None
             for proj, pat in rig.patterns
+        ]
+        middle = float(np.sqrt(cfg.depth_range.near * cfg.depth_range.far))
+        self._column_steps = [
+            column_step(rig.camera, proj, pat, middle) if table is not None else 0.0
+            for (proj, pat), table in zip(rig.patterns, self._snapping, strict=True)
         ]
         # measured image rows: rows_per_cell rows around the centre of every grid cell
         s = cfg.stride
@@ -595,7 +601,7 @@ class DepthPipeline:
             bd.band_slants(bands[p], counts[p], self._row_y)
         # the two patterns on two threads (the kernel releases the GIL)
         run_tasks(*(functools.partial(desnap_intervals, bands[p], counts[p],
-                                      float(self.rig.patterns[p][1].pitch_px), table)
+                                      self._column_steps[p], table)
                     for p, table in enumerate(self._snapping) if table is not None))  # fmt: skip
         grids = np.empty((2, len(self._fields), gh, gw))
         for p in range(2):

@@ -30,8 +30,9 @@ import numba as nb
 import numpy as np
 
 from .bands import F_CENTRE, F_INTERVAL, F_VALID
+from .geometry import project_to_projector, undistort_pixels
 from .patterns import lit_columns
-from .rig import Pattern
+from .rig import CameraModel, Pattern, ProjectorModel
 
 #: phases of the snapping tried per run (fractions of a column)
 PHASES = 64
@@ -69,17 +70,33 @@ def snap_offsets(pattern: Pattern, width: int) -> np.ndarray | None:
     return out
 
 
+def column_step(camera: CameraModel, projector: ProjectorModel, pattern: Pattern,
+                depth: float) -> float:
+    """The pattern's pitch, signed by the way its lines' columns run along a camera row.
+
+    A projector mounted upside down, or seen in a mirror, lights columns that
+    decrease from left to right in the camera; its lines then meet a run of bands
+    in the other order.  Taken at the image centre, at ``depth`` (m).
+    """
+    cx, cy = 0.5 * camera.width, 0.5 * camera.height
+    xy = undistort_pixels(camera.K, camera.dist, np.array([[cx - 8.0, cy], [cx + 8.0, cy]]))
+    points = np.column_stack([xy * depth, np.full(2, depth)])
+    u = project_to_projector(projector, points)[:, 0]
+    return float(pattern.pitch_px if u[1] >= u[0] else -pattern.pitch_px)
+
+
 @nb.njit(cache=True, error_model="numpy")
-def _offsets(table, pitch, phase, m, out):
-    """Snap offsets of lines 0..m of a run whose first line has fraction ``phase``."""
+def _offsets(table, step, phase, m, out):
+    """Snap offsets of lines 0..m of a run whose first line has fraction ``phase``
+    (``step``: the nominal column change from one band of the run to the next)."""
     n = table.shape[0]
     for j in range(m + 1):
-        f = (phase + j * pitch) % 1.0
+        f = (phase + j * step) % 1.0
         out[j] = table[int(f * n) % n]
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _log_spacings(table, pitch, lines):
+def _log_spacings(table, step, lines):
     """Log of the snapped spacing after line ``j`` of a run whose first line has the
     fraction ``ph / PHASES`` (the last row: no snapping), and its running sums.
 
@@ -91,11 +108,11 @@ def _log_spacings(table, pitch, lines):
     dlt = np.empty(lines)
     for ph in range(PHASES + 1):
         if ph < PHASES:
-            _offsets(table, pitch, ph / PHASES, lines - 1, dlt)
+            _offsets(table, step, ph / PHASES, lines - 1, dlt)
         else:
             dlt[:] = 0.0
         for j in range(lines - 1):
-            v = np.log(pitch + dlt[j + 1] - dlt[j])
+            v = np.log(abs(step + dlt[j + 1] - dlt[j]))
             log_d[ph, j] = v
             sums[0, ph, j + 1] = sums[0, ph, j] + v
             sums[1, ph, j + 1] = sums[1, ph, j] + j * v
@@ -210,15 +227,16 @@ def _link(bands, counts, r, o, out):
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def desnap_intervals(bands, counts, pitch, table):
+def desnap_intervals(bands, counts, step, table):
     """Take the column snapping out of every valid band's ``F_INTERVAL`` (in place).
 
     Parameters
     ----------
     bands, counts : numpy.ndarray
         One uniform pattern's detector output (rows, bands, fields) and band counts.
-    pitch : float
-        The pattern's nominal pitch (projector px).
+    step : float
+        The pattern's nominal pitch (projector px), negative where the projector
+        columns of its lines decrease along a camera row (:func:`column_step`).
     table : numpy.ndarray
         :func:`snap_offsets` of the pattern.
 
@@ -240,7 +258,7 @@ def desnap_intervals(bands, counts, pitch, table):
     # rows hold a few runs: the residuals are sized by the most, not by the bands
     res = np.empty((rows, most, PHASES + 1))
     dof = np.empty((rows, most), np.int64)
-    log_d, sums = _log_spacings(table, pitch, width)
+    log_d, sums = _log_spacings(table, step, width)
     for r in range(rows):
         run_of[r, : counts[r]] = -1
         for i in range(nruns[r]):
@@ -295,7 +313,7 @@ def desnap_intervals(bands, counts, pitch, table):
                         seen[ib] = True
                         # line index of the other run's first band, relative to this run's
                         dn = j - (q - starts[nr, ib])
-                        shift = int(np.floor(((dn * pitch) % 1.0) * PHASES + 0.5)) % PHASES
+                        shift = int(np.floor(((dn * step) % 1.0) * PHASES + 0.5)) % PHASES
                         for ph in range(PHASES):
                             tot[ph] += res[nr, ib, (ph + shift) % PHASES]
                         tot[PHASES] += res[nr, ib, PHASES]
@@ -314,21 +332,22 @@ def desnap_intervals(bands, counts, pitch, table):
             if m < MIN_SPACINGS:
                 continue
             fixed += 1
-            _correct_run(bands[r], s, m, pitch, table, best / PHASES)
+            _correct_run(bands[r], s, m, step, table, best / PHASES)
     return fixed
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _correct_run(bands, s, m, pitch, table, phase):
+def _correct_run(bands, s, m, step, table, phase):
     """Scale the run's intervals by their spacings in whole columns over the measured ones."""
     dlt = np.empty(m + 1)
-    _offsets(table, pitch, phase, m, dlt)
+    _offsets(table, step, phase, m, dlt)
+    pitch = abs(step)
     sp = np.empty(m)
     ns = np.empty(m)
     for j in range(m):
         sp[j] = bands[s + j + 1, F_CENTRE] - bands[s + j, F_CENTRE]
         # the spacing had the lines been ``pitch`` apart
-        ns[j] = sp[j] * pitch / (pitch + dlt[j + 1] - dlt[j])
+        ns[j] = sp[j] * pitch / abs(step + dlt[j + 1] - dlt[j])
     for j in range(m + 1):
         k = s + j
         if not bands[k, F_VALID] > 0:
