@@ -25,7 +25,7 @@ from .intervals import IntervalModel
 from .profile_model import static_width_excess
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
-from .snapping import column_step, desnap_intervals, snap_offsets
+from .snapping import LineSnapping, column_direction, desnap_intervals
 from .threads import run_tasks
 
 MAX_BANDS_PER_ROW = 160
@@ -93,9 +93,10 @@ class PipelineConfig:
         detector) on their periodic profile (:func:`~lightflow.app.core.overlap.measure_runs`;
         rigs with uniform patterns).
     whole_columns : bool
-        Uniform patterns: the projected lines sit on whole projector columns, so
-        their spacings alternate between the two whole numbers around the pitch; take
-        that out of each band's interval (:mod:`lightflow.app.core.snapping`).
+        The projected lines sit on whole projector columns, so a uniform pattern's
+        spacings alternate between the two whole numbers around the pitch, and an
+        exp2 pattern's are 1-5 % off; take that out of each band's interval
+        (:mod:`lightflow.app.core.snapping`).
     camera_gamma : float or "auto", optional
         The camera's response, ``DN = full * (light / full) ** (1 / gamma)``;
         default: the rig's (``camera.gamma``; 1, linear, when it gives none).  Unless it
@@ -206,17 +207,13 @@ class DepthPipeline:
             dtype=np.float64,
         )  # fmt: skip
         self._fields = np.array(bd.GRID_FIELDS, dtype=np.int64)
-        # per pattern: where its lines really sit (None: not uniform, or not asked for),
-        # and the signed pitch from one band to the next along a row
-        self._snapping = [
-            snap_offsets(pat, proj.width) if cfg.whole_columns else None
-            for proj, pat in rig.patterns
-        ]
+        # per pattern: where its lines really sit (None: on whole columns, or not asked for)
         middle = float(np.sqrt(cfg.depth_range.near * cfg.depth_range.far))
-        self._column_steps = [
-            column_step(rig.camera, proj, pat, middle) if table is not None else 0.0
-            for (proj, pat), table in zip(rig.patterns, self._snapping, strict=True)
-        ]
+        self._snapping = [
+            LineSnapping.of(pat, proj.width, column_direction(rig.camera, proj, middle),
+                            MAX_BANDS_PER_ROW) if cfg.whole_columns else None
+            for proj, pat in rig.patterns
+        ]  # fmt: skip
         # measured image rows: rows_per_cell rows around the centre of every grid cell
         s = cfg.stride
         k = max(1, min(b.rows_per_cell, s))
@@ -600,9 +597,8 @@ class DepthPipeline:
         for p in range(2):
             bd.band_slants(bands[p], counts[p], self._row_y)
         # the two patterns on two threads (the kernel releases the GIL)
-        run_tasks(*(functools.partial(desnap_intervals, bands[p], counts[p],
-                                      self._column_steps[p], table)
-                    for p, table in enumerate(self._snapping) if table is not None))  # fmt: skip
+        run_tasks(*(functools.partial(desnap_intervals, bands[p], counts[p], snap)
+                    for p, snap in enumerate(self._snapping) if snap is not None))  # fmt: skip
         grids = np.empty((2, len(self._fields), gh, gw))
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], k, cfg.stride, gw, 0.5, self._fields, grids[p])

@@ -1,46 +1,50 @@
 """Line intervals that know the projected lines sit on whole projector columns.
 
-A uniform pattern's nominal line centres ``offset + k * pitch`` fall between
-projector columns; the pattern lights whole columns (:func:`~.patterns.lit_columns`),
-so each line's true centre is its nominal one moved by up to half a column, by an
-amount that depends only on the nominal centre's fraction.  Neighbouring lines are
-then ``floor(pitch)`` or ``ceil(pitch)`` columns apart, not ``pitch``: with a pitch
-of 25.8 columns, most spacings are 26 (0.7 % long) and every fifth or sixth is 25
+A pattern's nominal line centres (``offset + k * pitch`` for a uniform one) fall
+between projector columns; the pattern lights whole columns
+(:func:`~.patterns.lit_columns`), so each line's true centre is its nominal one
+moved by up to half a column.  Neighbouring lines of a uniform pattern are then
+``floor(pitch)`` or ``ceil(pitch)`` columns apart, not ``pitch``: with a pitch of
+25.8 columns, most spacings are 26 (0.7 % long) and every fifth or sixth is 25
 (3 % short).  A band's interval, the mean of its two spacings, inherits this: its
 mean is right but its median is 0.5-0.7 % long, and the flows and the line width
 read against it with it.  Measured on rendered boards against the renderer's
 truth, the interval of a band is within -1.4 to +0.9 % (p10-p90) as measured and
-within 0.3 % once the snapping is taken out.
+within 0.3 % once the snapping is taken out.  An exp2 pattern's spacings change
+from line to line anyway, and its snapping makes them 1-5 % off, in no order.
 
-Which lines a run of bands shows is not known, so the phase of the snapping is
-found per run of a row: the run's log spacings less the log spacings the snapping
-predicts for a phase should follow a smooth trend (a straight line, a parabola
-for six spacings and more).  The fit of each phase is pooled with the runs of the
-same lines in :data:`REACH_ROWS` rows above and below (a line's phase is the same
-along it; bands are paired with the nearest centre of the next row).  A run keeps
-its intervals when no phase fits clearly better (:data:`MIN_GAIN`) than no
-snapping: a pattern drawn without it, or a run too short to tell.
+Which lines a run of bands shows is not known.  It is found per run of a row,
+among candidates: for a uniform pattern the fraction of a column at which its
+first line's nominal centre lies (:data:`PHASES` of them: the snapping depends
+on nothing else), for an exp2 pattern the index of its first line.  For each, the
+run's log spacings less the log spacings the candidate predicts should follow a
+smooth trend (a straight line, a parabola for six spacings and more).  The fit of
+each candidate is pooled with the runs of the same lines in :data:`REACH_ROWS`
+rows above and below (bands are paired with the nearest centre of the next row).
+A run keeps its intervals when no candidate fits clearly better (:data:`MIN_GAIN`)
+than no snapping at all: a pattern drawn without it, or a run too short to tell.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 
 from .bands import F_CENTRE, F_INTERVAL, F_VALID
 from .geometry import project_to_projector, undistort_pixels
-from .patterns import lit_columns
+from .patterns import line_centres, line_footprints, lit_columns
 from .rig import CameraModel, Pattern, ProjectorModel
 
-#: phases of the snapping tried per run (fractions of a column)
+#: phases of a uniform pattern's snapping tried per run (fractions of a column)
 PHASES = 64
 #: entries of the offset table per column
 TABLE_SIZE = 256
 #: rows above and below whose runs of the same lines are pooled into a run's fit
 REACH_ROWS = 3
-#: a phase is used only when its pooled residual is below this share of no snapping's
+#: a candidate is used only when its pooled residual is below this share of no snapping's
 MIN_GAIN = 0.5
 #: a run is corrected only when it has this many spacings: in a shorter one (a ball's
 #: rows, towards its limb) a phase that puts a whole-column step where the trend bends
@@ -49,6 +53,8 @@ MIN_GAIN = 0.5
 MIN_SPACINGS = 6
 #: neighbouring spacings of one run differ by less than this factor (else a new run)
 RUN_RATIO = 1.33
+#: the residual of a candidate that puts a run's lines past the pattern's ends
+IMPOSSIBLE = 1e30
 
 
 def snap_offsets(pattern: Pattern, width: int) -> np.ndarray | None:
@@ -70,9 +76,8 @@ def snap_offsets(pattern: Pattern, width: int) -> np.ndarray | None:
     return out
 
 
-def column_step(camera: CameraModel, projector: ProjectorModel, pattern: Pattern,
-                depth: float) -> float:
-    """The pattern's pitch, signed by the way its lines' columns run along a camera row.
+def column_direction(camera: CameraModel, projector: ProjectorModel, depth: float) -> int:
+    """+1 where the projector columns a camera row sees increase along it, else -1.
 
     A projector mounted upside down, or seen in a mirror, lights columns that
     decrease from left to right in the camera; its lines then meet a run of bands
@@ -82,54 +87,90 @@ def column_step(camera: CameraModel, projector: ProjectorModel, pattern: Pattern
     xy = undistort_pixels(camera.K, camera.dist, np.array([[cx - 8.0, cy], [cx + 8.0, cy]]))
     points = np.column_stack([xy * depth, np.full(2, depth)])
     u = project_to_projector(projector, points)[:, 0]
-    return float(pattern.pitch_px if u[1] >= u[0] else -pattern.pitch_px)
+    return 1 if u[1] >= u[0] else -1
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _offsets(table, step, phase, m, out):
-    """Snap offsets of lines 0..m of a run whose first line has fraction ``phase``
-    (``step``: the nominal column change from one band of the run to the next)."""
-    n = table.shape[0]
-    for j in range(m + 1):
-        f = (phase + j * step) % 1.0
-        out[j] = table[int(f * n) % n]
+@dataclass(frozen=True)
+class LineSnapping:
+    """One pattern's snapping as tables over candidates (rows) and a run's spacings.
 
-
-@nb.njit(cache=True, error_model="numpy")
-def _log_spacings(table, step, lines):
-    """Log of the snapped spacing after line ``j`` of a run whose first line has the
-    fraction ``ph / PHASES`` (the last row: no snapping), and its running sums.
-
-    Returns ``log_d`` ``(PHASES + 1, lines - 1)`` and ``sums`` ``(4, PHASES + 1, lines)``:
-    over ``j < m``, the sums of ``log_d``, ``j log_d``, ``j^2 log_d`` and ``log_d^2``.
+    Attributes
+    ----------
+    log_d : numpy.ndarray
+        ``(C + 1, n)``: log of the true spacing (projector px) after a run's
+        ``j``-th band for candidate ``c``; NaN past the pattern's ends; the last
+        row, 0, is "no snapping".
+    sums : numpy.ndarray
+        ``(4, C + 1, n + 1)``: running sums over ``j < m`` of ``log_d``,
+        ``j log_d``, ``j^2 log_d`` and ``log_d^2``.
+    factor : numpy.ndarray
+        ``(C, n)``: nominal over true spacing.
+    modular : bool
+        Candidates are phases (uniform), so shifting one wraps around.
+    step : float
+        Pooling: a run whose first line lies ``dn`` bands further along a row has
+        the candidate ``c + dn * step`` (exp2: ``step`` is +-1) or, for phases,
+        ``c + PHASES * frac(dn * step)`` (``step``: the signed pitch).
     """
-    log_d = np.empty((PHASES + 1, lines - 1))
-    sums = np.zeros((4, PHASES + 1, lines))
-    dlt = np.empty(lines)
-    for ph in range(PHASES + 1):
-        if ph < PHASES:
-            _offsets(table, step, ph / PHASES, lines - 1, dlt)
+
+    log_d: np.ndarray
+    sums: np.ndarray
+    factor: np.ndarray
+    modular: bool
+    step: float
+
+    @staticmethod
+    def of(pattern: Pattern, width: int, direction: int,
+           bands_per_row: int) -> LineSnapping | None:  # fmt: skip
+        """The tables of one pattern, for runs of up to ``bands_per_row`` bands.
+
+        ``width``: the projector's; ``direction``: :func:`column_direction`.
+        ``None`` where the pattern lights every line on its nominal centre.
+        """
+        n = bands_per_row - 1
+        j = np.arange(n + 1)
+        if pattern.kind == "uniform":
+            table = snap_offsets(pattern, width)
+            step = direction * pattern.pitch_px
+            frac = (np.arange(PHASES)[:, None] / PHASES + j[None, :] * step) % 1.0
+            offsets = table[(frac * TABLE_SIZE).astype(np.int64) % TABLE_SIZE]
+            true = np.abs(step + np.diff(offsets, axis=1))
+            nominal = np.full_like(true, pattern.pitch_px)
+            modular = True
         else:
-            dlt[:] = 0.0
-        for j in range(lines - 1):
-            v = np.log(abs(step + dlt[j + 1] - dlt[j]))
-            log_d[ph, j] = v
-            sums[0, ph, j + 1] = sums[0, ph, j] + v
-            sums[1, ph, j + 1] = sums[1, ph, j] + j * v
-            sums[2, ph, j + 1] = sums[2, ph, j] + j * j * v
-            sums[3, ph, j + 1] = sums[3, ph, j] + v * v
-    return log_d, sums
+            nominal_c = line_centres(pattern, width)
+            true_c = line_footprints(pattern, width).mean(axis=1)
+            if true_c.size != nominal_c.size:
+                return None  # lines merged at the projector's resolution
+            lines = np.arange(nominal_c.size)[:, None] + direction * j[None, :]
+            inside = (lines >= 0) & (lines < nominal_c.size)
+            at = np.clip(lines, 0, nominal_c.size - 1)
+            with np.errstate(invalid="ignore"):
+                true = np.where(inside[:, 1:] & inside[:, :-1],
+                                np.abs(np.diff(true_c[at], axis=1)), np.nan)  # fmt: skip
+                nominal = np.abs(np.diff(nominal_c[at], axis=1))
+            step = float(direction)
+            modular = False
+        if np.nanmax(np.abs(true / nominal - 1)) < 1e-9:
+            return None  # every line on a whole column: nothing to take out
+        with np.errstate(invalid="ignore", divide="ignore"):
+            log_d = np.vstack([np.log(true), np.zeros((1, n))])
+            factor = nominal / true
+        sums = np.zeros((4, log_d.shape[0], n + 1))
+        for k, term in enumerate((log_d, j[:-1] * log_d, j[:-1] ** 2 * log_d, log_d * log_d)):
+            sums[k, :, 1:] = np.cumsum(term, axis=1)
+        return LineSnapping(log_d, sums, factor, modular, step)
 
 
 @nb.njit(cache=True, error_model="numpy")
 def _run_residuals(bands, s, m, log_d, sums, out):
-    """Per phase (and, last, no snapping): the squared residual of the run's log spacings
-    less the snapped ones from a smooth trend; returns the degrees of freedom.
+    """Per candidate (and, last, no snapping): the squared residual of the run's log
+    spacings less the candidate's from a smooth trend; returns the degrees of freedom.
 
     The trend is fitted on the orthogonal basis 1, t, t^2 - mean over the centred
     spacing index t; the residual is the sum of squares less the three projections,
-    whose sums come from the run's own and :func:`_log_spacings`' running sums, so that
-    each phase costs one product per spacing.
+    whose sums come from the run's own and the tables' running sums, so that each
+    candidate costs one product per spacing.
     """
     out[:] = 0.0
     if m < 3:
@@ -154,7 +195,7 @@ def _run_residuals(bands, s, m, log_d, sums, out):
         l1 += j * v
         l2 += j * j * v
         l3 += v * v
-    for ph in range(PHASES + 1):
+    for ph in range(out.shape[0]):
         cross = 0.0
         for j in range(m):
             cross += ls[j] * log_d[ph, j]
@@ -167,7 +208,7 @@ def _run_residuals(bands, s, m, log_d, sums, out):
         if quad:
             yq = (y2 - 2.0 * c * y1 + c * c * y0) - st / m * y0
             r -= yq * yq / sq
-        out[ph] = max(r, 0.0)
+        out[ph] = max(r, 0.0) if np.isfinite(r) else IMPOSSIBLE
     return m - (3 if quad else 2)
 
 
@@ -226,27 +267,31 @@ def _link(bands, counts, r, o, out):
             out[q] = best
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
-def desnap_intervals(bands, counts, step, table):
+def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
     """Take the column snapping out of every valid band's ``F_INTERVAL`` (in place).
 
     Parameters
     ----------
     bands, counts : numpy.ndarray
-        One uniform pattern's detector output (rows, bands, fields) and band counts.
-    step : float
-        The pattern's nominal pitch (projector px), negative where the projector
-        columns of its lines decrease along a camera row (:func:`column_step`).
-    table : numpy.ndarray
-        :func:`snap_offsets` of the pattern.
+        One pattern's detector output (rows, bands, fields) and band counts.
+    snapping : LineSnapping
+        The pattern's tables (:meth:`LineSnapping.of`).
 
     Returns
     -------
     int
         Runs whose intervals were corrected.
     """
+    return _desnap(bands, counts, snapping.log_d, snapping.sums, snapping.factor,
+                   snapping.modular, snapping.step)  # fmt: skip
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _desnap(bands, counts, log_d, sums, factor, modular, step):
+    """:func:`desnap_intervals` on the tables."""
     rows = counts.shape[0]
     width = bands.shape[1]
+    cands = factor.shape[0]
     starts = np.empty((rows, width), np.int64)
     ends = np.empty((rows, width), np.int64)
     nruns = np.empty(rows, np.int64)
@@ -256,9 +301,8 @@ def desnap_intervals(bands, counts, step, table):
         nruns[r] = _runs(bands[r], counts[r], starts[r], ends[r])
         most = max(most, nruns[r])
     # rows hold a few runs: the residuals are sized by the most, not by the bands
-    res = np.empty((rows, most, PHASES + 1))
+    res = np.empty((rows, most, cands + 1))
     dof = np.empty((rows, most), np.int64)
-    log_d, sums = _log_spacings(table, step, width)
     for r in range(rows):
         run_of[r, : counts[r]] = -1
         for i in range(nruns[r]):
@@ -272,7 +316,7 @@ def desnap_intervals(bands, counts, step, table):
         _link(bands, counts, r, r + 1, up[r])
         _link(bands, counts, r + 1, r, down[r + 1])
     fixed = 0
-    tot = np.empty(PHASES + 1)
+    tot = np.empty(cands + 1)
     cur = np.empty(width, np.int64)
     nxt = np.empty(width, np.int64)
     seen = np.zeros(most, np.bool_)
@@ -281,7 +325,7 @@ def desnap_intervals(bands, counts, step, table):
             s = starts[r, i]
             e = ends[r, i]
             m = e - s
-            if m < 1:
+            if m < MIN_SPACINGS:
                 continue
             tot[:] = res[r, i]
             total_dof = dof[r, i]
@@ -311,12 +355,9 @@ def desnap_intervals(bands, counts, step, table):
                         if ib < 0 or seen[ib]:
                             continue
                         seen[ib] = True
-                        # line index of the other run's first band, relative to this run's
+                        # line of the other run's first band, in bands from this run's
                         dn = j - (q - starts[nr, ib])
-                        shift = int(np.floor(((dn * step) % 1.0) * PHASES + 0.5)) % PHASES
-                        for ph in range(PHASES):
-                            tot[ph] += res[nr, ib, (ph + shift) % PHASES]
-                        tot[PHASES] += res[nr, ib, PHASES]
+                        _pool(tot, res[nr, ib], dn, modular, step)
                         total_dof += dof[nr, ib]
                     for j in range(m + 1):
                         cur[j] = nxt[j]
@@ -324,30 +365,42 @@ def desnap_intervals(bands, counts, step, table):
             if total_dof < 1:
                 continue
             best = 0
-            for ph in range(1, PHASES):
+            for ph in range(1, cands):
                 if tot[ph] < tot[best]:
                     best = ph
-            if not tot[best] < MIN_GAIN * tot[PHASES]:
-                continue
-            if m < MIN_SPACINGS:
+            if not tot[best] < MIN_GAIN * tot[cands]:
                 continue
             fixed += 1
-            _correct_run(bands[r], s, m, step, table, best / PHASES)
+            _correct_run(bands[r], s, m, factor[best])
     return fixed
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _correct_run(bands, s, m, step, table, phase):
-    """Scale the run's intervals by their spacings in whole columns over the measured ones."""
-    dlt = np.empty(m + 1)
-    _offsets(table, step, phase, m, dlt)
-    pitch = abs(step)
+def _pool(tot, other, dn, modular, step):
+    """Add another run's residuals, each under the candidate it has when this run has
+    candidate ``c`` and its first line lies ``dn`` bands along."""
+    cands = tot.shape[0] - 1
+    if modular:
+        shift = int(np.floor(((dn * step) % 1.0) * cands + 0.5)) % cands
+        for c in range(cands):
+            tot[c] += other[(c + shift) % cands]
+    else:
+        shift = int(dn * step)
+        for c in range(cands):
+            o = c + shift
+            tot[c] += other[o] if 0 <= o < cands else IMPOSSIBLE
+    tot[cands] += other[cands]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _correct_run(bands, s, m, factor):
+    """Scale the run's intervals by their nominal spacings over the measured ones."""
     sp = np.empty(m)
     ns = np.empty(m)
     for j in range(m):
         sp[j] = bands[s + j + 1, F_CENTRE] - bands[s + j, F_CENTRE]
-        # the spacing had the lines been ``pitch`` apart
-        ns[j] = sp[j] * pitch / abs(step + dlt[j + 1] - dlt[j])
+        # the spacing had the lines been at their nominal centres
+        ns[j] = sp[j] * factor[j]
     for j in range(m + 1):
         k = s + j
         if not bands[k, F_VALID] > 0:
