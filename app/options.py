@@ -77,6 +77,13 @@ def add_pipeline_options(p: argparse.ArgumentParser) -> None:
         "single-projector rigs and off for two projectors, whose depth is in the motion)",
     )  # fmt: skip
     p.add_argument(
+        "--whole-columns", choices=("on", "off"), default="on",
+        help="the projected lines sit on whole projector columns (as `lightflow project` and "
+        "`lightflow patterns` draw them), so their spacings are whole numbers of columns, "
+        "not the pitch: take that out of every line interval ('on', the default); 'off' "
+        "for patterns drawn at their exact, fractional centres",
+    )  # fmt: skip
+    p.add_argument(
         "--camera-gamma", metavar="G|auto",
         help="the camera's response, DN = full * (light / full) ** (1 / G): 1 for a linear "
         "camera, about 2.2 for a webcam or an sRGB image; every frame is linearised with it "
@@ -108,7 +115,9 @@ def pipeline_config(args: argparse.Namespace):
         if not lo <= gamma <= hi:
             raise ConfigError(f"--camera-gamma: expected 'auto' or {lo:g} to {hi:g} (1: a "
                               f"linear camera), got {args.camera_gamma}")  # fmt: skip
-    return PipelineConfig(stride=args.stride, flow=FlowParams(**flow), camera_gamma=gamma)
+    whole = getattr(args, "whole_columns", "on") == "on"
+    return PipelineConfig(stride=args.stride, flow=FlowParams(**flow), camera_gamma=gamma,
+                          whole_columns=whole)  # fmt: skip
 
 
 def make_pipeline(rig, args: argparse.Namespace):

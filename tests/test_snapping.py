@@ -142,3 +142,14 @@ def test_an_exp2_patterns_intervals_come_out_right(kind):
     assert fixed == 9
     assert np.percentile(before[:, 1:-1], 90) > 0.01  # measured 1.2 %
     assert np.percentile(after[:, 1:-1], 90) < 0.0003  # measured 0.01 %
+
+
+def test_the_command_line_can_turn_it_off():
+    from argparse import ArgumentParser
+
+    from lightflow.app.options import add_pipeline_options, pipeline_config
+
+    parser = ArgumentParser()
+    add_pipeline_options(parser)
+    assert pipeline_config(parser.parse_args([])).whole_columns
+    assert not pipeline_config(parser.parse_args(["--whole-columns", "off"])).whole_columns
