@@ -617,7 +617,14 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
     # per band: the sigma at which the sweep its width implies also predicts its ramp
-    cols, sigma = _ramp_sigma(lambda sg: t.ramp(t.true_length(m, line, sg), line, sg) - r)
+    # per band, up the sigma grid to the first root only, in one kernel: the lookups of
+    # t.ramp(t.true_length(m, line, sg), line, sg) - r without ~90 calls over all bands
+    sig = _sigma_grid()
+    j, r0, r1 = (np.empty(m.size, np.int64), np.empty(m.size), np.empty(m.size))
+    bands = (np.ascontiguousarray(v, np.float64) for v in (m, line, r))
+    _ramp_roots(t.inverse, t.r, S_AXIS, sig, *bands, j, r0, r1)
+    cols = np.flatnonzero(j > 0)
+    cols, sigma = _interpolate_root(sig, cols, j[cols], r0[cols], r1[cols])
     if cols.size < min_bands // 2:
         return None
     # only bands whose width decides their sweep at that sigma: for a sweep within
@@ -637,13 +644,52 @@ def _ramp_sigma(mismatch):
     The predicted ramp grows with sigma: the root is the first sign change to >= 0,
     found on a 0.05 px grid over the tables' sigma axis and interpolated linearly.
     """
-    sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
-    res = np.stack([mismatch(sg) for sg in sig])
+    sig = _sigma_grid()
+    return _first_root(sig, np.stack([mismatch(sg) for sg in sig]))
+
+
+def _sigma_grid() -> np.ndarray:
+    """The sigmas :func:`_ramp_sigma` tries: a 0.05 px grid over the tables' axis."""
+    return np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _ramp_roots(inverse, ramp, s_axis, sig, m, line, r, first, before, at):
+    """:func:`_ramp_sigma` for the sweep that each band's width implies, per band ``k``:
+    the first index ``first[k]`` of ``sig`` where the predicted minus the measured ramp
+    ``r[k]`` is finite and >= 0 (-1: none), the mismatch there (``at``) and one step
+    before (``before``; NaN at index 0).  The lookups of :meth:`ProfileTables.true_length`
+    and :meth:`ProfileTables.ramp`, on the sigmas up to the root only."""
+    lo = s_axis[0]
+    step = s_axis[1] - s_axis[0]
+    for k in range(m.shape[0]):
+        first[k] = -1
+        before[k] = np.nan
+        at[k] = np.nan
+        prev = np.nan
+        for s in range(sig.shape[0]):
+            L = trilinear_at(inverse, lo, step, W_STEP, M_STEP, sig[s], line[k], m[k])
+            v = trilinear_at(ramp, lo, step, W_STEP, L_STEP, sig[s], line[k], L) - r[k]
+            if np.isfinite(v) and v >= 0:
+                first[k] = s
+                before[k] = prev
+                at[k] = v
+                break
+            prev = v
+
+
+def _first_root(sig: np.ndarray, res: np.ndarray):
+    """:func:`_ramp_sigma` on the mismatch ``res`` (one row per sigma of ``sig``)."""
     pos = np.isfinite(res) & (res >= 0)
     first = np.argmax(pos, axis=0)
     cols = np.flatnonzero(pos.any(axis=0) & (first > 0))
     j = first[cols]
-    r0, r1 = res[j - 1, cols], res[j, cols]
+    return _interpolate_root(sig, cols, j, res[j - 1, cols], res[j, cols])
+
+
+def _interpolate_root(sig, cols, j, r0, r1):
+    """The bands ``cols`` whose mismatch rises through 0 from ``r0`` at ``sig[j - 1]`` to
+    ``r1`` at ``sig[j]``, and the sigma where it crosses (linear)."""
     good = np.isfinite(r0) & (r1 > r0)
     cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
     return cols, sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
