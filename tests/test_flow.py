@@ -1,9 +1,11 @@
 """The flow stage on hand-made band maps: gating of static and overlapping bands."""
 
+import cv2
 import numpy as np
+import pytest
 
 from lightflow.app.core import causes
-from lightflow.app.core.flow import FlowModel, FlowParams
+from lightflow.app.core.flow import FlowModel, FlowParams, _enclosed, _gauss, smooth_log_ratio
 from lightflow.app.core.rig import resolve_rig
 
 
@@ -88,3 +90,93 @@ def test_reread_takes_the_corrected_interval_into_the_line_width():
     again = model.reread(first, overlapping, fix, params)
     assert np.isnan(again.log_ratio).all()
     assert (again.why == causes.OVERLAP).all()
+
+
+def _smooth_reference(log_ratio, sigma, outlier_sigmas, fill_fraction, variance=None):
+    """smooth_log_ratio as numpy passes (before its passes were fused into kernels)."""
+    zero = np.float32(0.0)
+    planes = [log_ratio.astype(np.float32)]
+    if variance is not None:
+        planes.append(variance.astype(np.float32))
+    mask = np.isfinite(planes[0])
+    for extra in planes[1:]:
+        mask &= np.isfinite(extra)
+    if sigma <= 0:
+        return [np.where(mask, v, np.float32(np.nan)) for v in planes]
+    lr, keep = planes[0], mask
+    if outlier_sigmas > 0:
+        k = 2 * int(round(sigma)) + 1
+        with np.errstate(invalid="ignore", divide="ignore"):
+            first = cv2.blur(np.where(mask, lr, zero), (k, k)) / cv2.blur(
+                mask.astype(np.float32), (k, k)
+            )
+        resid = np.abs(lr - first)
+        resid[~mask] = np.nan
+        sample = resid[::2, ::2]
+        finite = sample[np.isfinite(sample)]
+        if finite.size >= 16:
+            keep = resid <= outlier_sigmas * (float(np.median(finite)) * 1.4826 + 1e-6)
+    inputs = [keep.astype(np.float32)]
+    if variance is not None:
+        wt = np.where(keep, 1.0 / np.maximum(planes[1], np.float32(1e-12)), zero)
+        inputs += [wt, np.where(keep, lr * wt, zero), np.where(keep, planes[1], zero)]
+    else:
+        inputs.append(np.where(keep, lr, zero))
+    den, *blurred = (_gauss(x, sigma) for x in inputs)
+    fill = den >= fill_fraction
+    if fill_fraction < 1.0:
+        fill &= _enclosed(keep, int(2.0 * sigma) + 1) | (den > 0.5)
+    fill |= keep
+    den[~fill] = np.nan
+    if variance is None:
+        return [blurred[0] / den]
+    blurred[0][~fill] = np.nan
+    return [blurred[1] / blurred[0], blurred[2] / den]
+
+
+@pytest.mark.parametrize("sigma", [0.0, 2.0, 6.0])
+@pytest.mark.parametrize("with_variance", [False, True])
+@pytest.mark.parametrize("fill_fraction", [0.3, 1.0])
+def test_smoothing_gives_the_values_of_its_numpy_passes(sigma, with_variance, fill_fraction):
+    rng = np.random.default_rng(3)
+    lr = rng.normal(0.1, 0.02, (60, 80)).astype(np.float32)
+    lr[rng.random(lr.shape) < 0.3] = np.nan
+    lr[rng.random(lr.shape) < 0.02] += 1.0  # outliers
+    lr[20:30, 30:50] = np.nan  # a hole
+    var = rng.uniform(1e-5, 1e-3, lr.shape) if with_variance else None
+    got = smooth_log_ratio(lr, sigma, 3.0, fill_fraction, var)
+    got = list(got) if with_variance else [got]
+    want = _smooth_reference(lr, sigma, 3.0, fill_fraction, var)
+    assert len(got) == len(want)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == np.float32 and np.array_equal(g, w, equal_nan=True)
+
+
+def test_reading_a_few_cells_again_gives_the_flows_of_reading_them_all():
+    """The second reading redoes the blur and decision only near the corrected cells."""
+    rig = resolve_rig("two-projector")
+    model = FlowModel(rig)
+    model.blur[:] = (0.5, 0.2)
+    model.stride = 4  # the pipeline's: the sweeps are averaged over sigma = 2 cells
+    rng = np.random.default_rng(7)
+    shape = (120, 90)
+    g = _grids((16.0, 14.0), (60.0, 36.0), shape=shape)
+    g[:, 0] *= rng.uniform(0.8, 1.2, (2, *shape))
+    g[:, 1] *= rng.uniform(0.97, 1.03, (2, *shape))
+    g[:, 0, :, :10] = np.nan  # no bands on one side
+    params = FlowParams()
+    first = model.combine(g, params)
+    fix = np.zeros((2, *shape), np.float32)
+    fix[:, [20, 21, 70], [5, 40, 88]] = rng.uniform(-0.05, 0.05, (2, 3))  # a few rows apart
+    fixed = g.copy()
+    fixed[:, 1] *= np.exp(-fix)
+    todo = (fix != 0).any(axis=0)
+    again = model.recombine(fixed, params, first=first, todo=todo)
+    every = model.recombine(fixed, params)
+    assert not np.array_equal(again.log_ratio, first.log_ratio, equal_nan=True)
+    for a, b in zip(
+        (again.log_ratio, *again.flows, again.lr_var, again.lr_sys, again.why),
+        (every.log_ratio, *every.flows, every.lr_var, every.lr_sys, every.why),
+        strict=True,
+    ):
+        assert np.array_equal(a, b, equal_nan=True)

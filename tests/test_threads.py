@@ -1,6 +1,10 @@
 """The kernel pool: independent tasks give the serial results."""
 
-from lightflow.app.core.threads import run_tasks, shared_pool
+import threading
+
+import numpy as np
+
+from lightflow.app.core.threads import run_rows, run_tasks, shared_pool
 
 
 def test_tasks_return_their_results_in_order_also_from_a_pool_thread():
@@ -10,3 +14,22 @@ def test_tasks_return_their_results_in_order_also_from_a_pool_thread():
     assert shared_pool().submit(run_tasks, *tasks).result() == [0, 1, 4, 9, 16]
     assert run_tasks() == []
 
+
+def test_a_task_that_waits_behind_a_busy_pool_runs_on_the_caller():
+    # every pool thread held until the caller's tasks are done: they must not wait for it
+    release = threading.Event()
+    held = [shared_pool().submit(release.wait) for _ in range(shared_pool()._max_workers)]
+    try:
+        assert run_tasks(*(lambda i=i: (i, threading.current_thread()) for i in range(3))) == [
+            (i, threading.current_thread()) for i in range(3)
+        ]
+        out = np.zeros(10)
+        run_rows(_fill, 10, out)
+        assert np.array_equal(out, np.arange(10))
+    finally:
+        release.set()
+    assert all(f.result() for f in held)
+
+
+def _fill(out, r0, r1):
+    out[r0:r1] = np.arange(r0, r1)

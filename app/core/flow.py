@@ -568,7 +568,7 @@ class FlowModel:
         fixed = grids.copy()
         fixed[:, 1] *= np.exp(-fix)
         # a cell without a correction reads as before (the same inputs): not read again
-        second = self.recombine(fixed, params, periodic, first.readings, (fix != 0).any(axis=0))
+        second = self.recombine(fixed, params, periodic, first, (fix != 0).any(axis=0))
         again = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
         log_ratio = np.where(again, second.log_ratio, first.log_ratio + fix[0] - fix[1])
         flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
@@ -577,19 +577,21 @@ class FlowModel:
                         first.lr_sys, first.why, first.swept)  # fmt: skip
 
     def recombine(self, grids: np.ndarray, params: FlowParams,
-                  periodic: np.ndarray | None = None, readings: tuple | None = None,
+                  periodic: np.ndarray | None = None, first: FlowMaps | None = None,
                   todo: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
         """:meth:`combine` without touching the blur model (for :meth:`reread`).
 
-        With ``readings`` (a :class:`FlowMaps`' own) and ``todo`` (bool per cell), only
-        the cells in ``todo`` are read from ``grids``; the others keep their readings.
+        With ``first`` (a :class:`FlowMaps` of these cells, with its readings) and
+        ``todo`` (bool per cell), only the cells in ``todo`` are read from ``grids``; the
+        others keep their readings, and where no cell read again reaches, the decision
+        of ``first``.
         """
         tab = tables()
         still = self.still_depth(params)
         gh, gw = grids.shape[2:]
         if periodic is None:
             periodic = np.zeros((2, gh, gw), np.bool_)
-        if readings is None:
+        if first is None:
             sweeps = np.empty((2, gh, gw), np.float32)
             moving_at = np.empty((2, gh, gw), np.float32)
             pitch = np.ones((2, gh, gw), np.float32)
@@ -600,7 +602,7 @@ class FlowModel:
             todo = np.ones((gh, gw), np.bool_)
         else:
             sweeps, moving_at, pitch, sens, interval_ratio, banded, why = (
-                a.copy() for a in readings)  # fmt: skip
+                a.copy() for a in first.readings)  # fmt: skip
         measured = self.blur_measured
         # bands of grid rows on a thread per core (the kernels release the GIL)
         run_rows(
@@ -624,19 +626,40 @@ class FlowModel:
         sigma = params.sweep_smoothing_px / max(1, self.stride)
         stack = np.empty((gh, gw, N_STACK_SINGLE if self.single else N_STACK), np.float32)
         run_rows(_pack, gh, sweeps, banded, interval_ratio, self.single, stack)
-        blurred = _gauss(stack, sigma) if sigma > 0 else stack
-        log_ratio = np.empty((gh, gw), np.float32)
-        flows = np.empty((2, gh, gw), np.float32)
-        lr_var = np.empty((gh, gw), np.float32)
-        lr_sys = np.empty((gh, gw), np.float32)
         # grid cells under the averaging kernel, times the stride: over the interval
         # (camera px) it is the number of independent bands averaged
         cells = 4.0 * math.pi * sigma * sigma * self.stride if sigma > 0 else self.stride
-        run_rows(
-            _decide, gh, sweeps, blurred, moving_at, pitch, interval_ratio, self.single, still,
-            params.sweep_outlier, params.measured_share, sens, grids, cells, log_ratio, flows,
-            lr_var, lr_sys, why,
-        )  # fmt: skip
+
+        def decide(blurred, *outputs):
+            # _decide's arguments: the readings, then the outputs (rows follow)
+            return (sweeps, blurred, moving_at, pitch, interval_ratio, self.single, still,
+                    params.sweep_outlier, params.measured_share, sens, grids, cells,
+                    *outputs)  # fmt: skip
+
+        near = None
+        if first is not None and 0.0 < sigma <= ROW_BANDS_MAX_SIGMA:
+            # read again, a cell changes the blurred stack only within the kernel's reach
+            # (each row of the blur is that of the whole map, see _gauss): the rows beyond
+            # keep the decision of ``first`` (on a fan, 1 ms of 1.8 ms per frame)
+            near = _row_segments(todo.any(axis=1), _halo(sigma))
+        if near is None:
+            blurred = _gauss(stack, sigma) if sigma > 0 else stack
+            log_ratio = np.empty((gh, gw), np.float32)
+            flows = np.empty((2, gh, gw), np.float32)
+            lr_var = np.empty((gh, gw), np.float32)
+            lr_sys = np.empty((gh, gw), np.float32)
+            run_rows(_decide, gh, *decide(blurred, log_ratio, flows, lr_var, lr_sys, why))
+        else:
+            blurred = np.empty_like(stack)
+            log_ratio, lr_var, lr_sys = (a.copy() for a in (first.log_ratio, first.lr_var,
+                                                            first.lr_sys))  # fmt: skip
+            flows = np.stack(first.flows)
+            decided = first.why.copy()
+            for r0, r1 in near:
+                _gauss_rows(stack, sigma, _halo(sigma), blurred, r0, r1)
+                decided[r0:r1] = why[r0:r1]
+                _decide(*decide(blurred, log_ratio, flows, lr_var, lr_sys, decided), r0, r1)
+            why = decided
         return FlowMaps(log_ratio, [flows[0], flows[1]], list(self.blur_px), lr_var, lr_sys, why,
                         swept, read)  # fmt: skip
 
@@ -745,14 +768,39 @@ class FlowModel:
         self._show_blur(samples[:, 3])
 
 
+#: :func:`_gauss` blurs bands of rows up to this sigma (each row as in one call)
+ROW_BANDS_MAX_SIGMA = 3.0
+
+
+def _halo(sigma: float) -> int:
+    """Rows beyond a band of rows that :func:`_gauss` reads for it (OpenCV's kernel
+    reaches 4 sigma)."""
+    return int(4.0 * sigma) + 2
+
+
+def _row_segments(rows: np.ndarray, reach: int) -> list:
+    """The runs ``(r0, r1)`` of the rows within ``reach`` of a true one in ``rows`` (bool);
+    None where they are more than half of them (then all rows at once, on every core)."""
+    n = rows.size
+    hit = np.flatnonzero(rows)
+    step = np.zeros(n + 1, np.int64)
+    np.add.at(step, np.maximum(hit - reach, 0), 1)
+    np.add.at(step, np.minimum(hit + reach + 1, n), -1)
+    covered = np.cumsum(step[:-1]) > 0
+    if 2 * np.count_nonzero(covered) > n:
+        return None
+    edges = np.flatnonzero(np.diff(covered, prepend=False, append=False))
+    return [(int(a), int(b)) for a, b in edges.reshape(-1, 2)]
+
+
 def _gauss(img: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian blur; wide ones as two box passes of equal variance (cost independent of sigma)."""
-    if sigma <= 3.0:
+    if sigma <= ROW_BANDS_MAX_SIGMA:
         # bands of rows on a thread per core: each output pixel is the same weighted sum
         # of the same inputs (OpenCV's kernel reaches 4 sigma), so the values are those
         # of one call.  Not the box passes: their running sums depend on where they start
         out = np.empty_like(img)
-        run_rows(_gauss_rows, img.shape[0], img, sigma, int(4.0 * sigma) + 2, out)
+        run_rows(_gauss_rows, img.shape[0], img, sigma, _halo(sigma), out)
         return out
     k = int(round(np.sqrt(6.0 * sigma * sigma + 1.0))) | 1  # var of 2 boxes: (k^2 - 1) / 6
     once = cv2.blur(img, (k, k), borderType=cv2.BORDER_REFLECT)
@@ -767,46 +815,119 @@ def _gauss_rows(img, sigma, halo, out, r0, r1):
     out[r0:r1] = band[r0 - lo : r1 - lo]
 
 
-def _masked_smooth(planes, mask, sigma, fill_fraction, weights=None):
-    """Masked smoothing of each float32 ``(h, w)`` plane in ``planes`` over one ``mask``.
+def _masked_smooth(values, variance, keep, sigma, fill_fraction):
+    """Masked smoothing of the float32 ``(h, w)`` map ``values`` over the pixels ``keep``.
 
-    With ``weights``, the first plane is a weighted mean (the others stay plain
-    means over the mask).
+    With ``variance`` (or None), ``values`` is an inverse-variance weighted mean and
+    the variance a plain mean over the same pixels; returns the list of the smoothed
+    maps (``[values]`` or ``[values, variance]``).
     """
-    zero = np.float32(0.0)
-    wt = None if weights is None else np.where(mask, weights, zero)
+    has_var = variance is not None
+    # what is blurred, in one pass: the mask, then the weights, the weighted values and
+    # the variance (with ``variance``) or the values, each 0 outside the mask
+    inputs = [np.empty(values.shape, np.float32) for _ in range(4 if has_var else 2)]
+    if has_var:
+        _smooth_inputs(values, variance, True, keep, *inputs)
+    else:
+        _smooth_inputs(values, values, False, keep, inputs[0], inputs[0], inputs[1], inputs[1])
     # one blur per plane: OpenCV's 4-channel float box filter ran 4-9x slower on
     # these maps than four planes (2.6 against 1.2 ms at 300x400); they are
     # independent, so they run at once, one per core
-    inputs = [mask.astype(np.float32)]
-    for c, values in enumerate(planes):
-        if c == 0 and wt is not None:
-            inputs += [wt, np.where(mask, values * wt, zero)]
-        else:
-            inputs.append(np.where(mask, values, zero))
     blurred = run_tasks(*(functools.partial(_gauss, x, sigma) for x in inputs))
-    den = blurred.pop(0)
-    fill = den >= fill_fraction
     if fill_fraction < 1.0:
         # only holes are filled: data on both sides (left and right, or above and
         # below) within the kernel.  Beside a convex edge (a blade, a ball's limb)
         # a third of the kernel is valid too, and filling there grew the object.
         # More than half the kernel valid is inside a straight edge, never beyond it.
-        fill &= _enclosed(mask, int(2.0 * sigma) + 1) | (den > 0.5)
-    fill |= mask
-    den[~fill] = np.nan  # NaN out there, and no division by 0
-    out = []
-    for c in range(len(planes)):
-        if c == 0 and wt is not None:
-            wden = blurred.pop(0)
-            wden[~fill] = np.nan
-            num = blurred.pop(0)
-            num /= wden
-        else:
-            num = blurred.pop(0)
-            num /= den
-        out.append(num)
-    return out
+        enclosed = _enclosed(keep, int(2.0 * sigma) + 1)
+    else:
+        enclosed = keep  # unused
+    if has_var:
+        den, wden, num, var_num = blurred
+    else:
+        den, num = blurred
+        wden = var_num = den  # unused
+    # NaN outside what is filled (no division by 0), then the means, in place
+    _smooth_outputs(den, wden, num, var_num, keep, enclosed, has_var, fill_fraction < 1.0,
+                    np.float32(fill_fraction))  # fmt: skip
+    return [num, var_num] if has_var else [num]
+
+
+# The kernels below fuse what were numpy passes over the map (a temporary each); each
+# pixel gets the same float32 operations, so the values are those of the numpy code.
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _outlier_inputs(values, variance, has_var, mask, masked, ones):
+    """``mask``: ``values`` (and ``variance``) finite; ``masked``: ``values`` there, else 0;
+    ``ones``: ``mask`` as 1.0 / 0.0."""
+    h, w = values.shape
+    for i in range(h):
+        for j in range(w):
+            ok = np.isfinite(values[i, j]) and (not has_var or np.isfinite(variance[i, j]))
+            mask[i, j] = ok
+            masked[i, j] = values[i, j] if ok else np.float32(0.0)
+            ones[i, j] = np.float32(1.0) if ok else np.float32(0.0)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _residuals(values, mask, num, den, resid):
+    """``resid``: ``|values - num / den|`` on ``mask``, NaN elsewhere."""
+    h, w = values.shape
+    for i in range(h):
+        for j in range(w):
+            resid[i, j] = abs(values[i, j] - num[i, j] / den[i, j]) if mask[i, j] else np.nan
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _keep_inliers(resid, limit, keep):
+    """``keep``: ``resid <= limit`` (float32; false where ``resid`` is NaN)."""
+    h, w = resid.shape
+    for i in range(h):
+        for j in range(w):
+            keep[i, j] = resid[i, j] <= limit
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _smooth_inputs(values, variance, has_var, keep, ones, wt, masked, var_masked):
+    """On ``keep``, else 0: ``ones`` 1.0; ``masked`` the ``values``; with ``has_var``, ``wt``
+    the inverse ``variance``, ``masked`` the values times it and ``var_masked`` the variance
+    (without, ``wt`` and ``var_masked`` are not written)."""
+    h, w = values.shape
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            k = keep[i, j]
+            ones[i, j] = np.float32(1.0) if k else zero
+            if has_var:
+                inv = np.float32(1.0) / max(variance[i, j], np.float32(1e-12))
+                wt[i, j] = inv if k else zero
+                masked[i, j] = values[i, j] * inv if k else zero
+                var_masked[i, j] = variance[i, j] if k else zero
+            else:
+                masked[i, j] = values[i, j] if k else zero
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _smooth_outputs(den, wden, num, var_num, keep, enclosed, has_var, holes, fill_fraction):
+    """In place: ``num`` over ``wden`` (with ``has_var``, and ``var_num`` over ``den``) or
+    over ``den``, where the pixel is kept or filled, else NaN (also in ``den``, ``wden``)."""
+    h, w = den.shape
+    for i in range(h):
+        for j in range(w):
+            d = den[i, j]
+            fill = d >= fill_fraction
+            if holes:
+                fill = fill and (enclosed[i, j] or d > 0.5)
+            if not (fill or keep[i, j]):
+                den[i, j] = np.nan
+                if has_var:
+                    wden[i, j] = np.nan
+            if has_var:
+                num[i, j] /= wden[i, j]
+                var_num[i, j] /= den[i, j]
+            else:
+                num[i, j] /= den[i, j]
 
 
 def _enclosed(mask: np.ndarray, r: int) -> np.ndarray:
@@ -847,36 +968,33 @@ def smooth_log_ratio(
     -------
     numpy.ndarray, or (numpy.ndarray, numpy.ndarray) with ``variance``
     """
-    planes = [log_ratio.astype(np.float32, copy=False)]
-    if variance is not None:
-        planes.append(variance.astype(np.float32, copy=False))
-    mask = np.isfinite(planes[0])
-    for extra in planes[1:]:
-        mask &= np.isfinite(extra)
+    values = log_ratio.astype(np.float32, copy=False)
+    var = None if variance is None else variance.astype(np.float32, copy=False)
+    shape = values.shape
+    mask = np.empty(shape, np.bool_)
+    masked = np.empty(shape, np.float32)
+    ones = np.empty(shape, np.float32)
+    _outlier_inputs(values, values if var is None else var, var is not None, mask, masked,
+                    ones)  # fmt: skip
     if sigma <= 0:
-        out = [np.where(mask, v, np.float32(np.nan)) for v in planes]
+        out = [np.where(mask, v, np.float32(np.nan)) for v in (values, var) if v is not None]
         return out[0] if variance is None else tuple(out)
-    log_ratio = planes[0]
     keep = mask
     if outlier_sigmas > 0:
         # a rough local mean is enough to spot outliers: a box filter costs less
         k = 2 * int(round(sigma)) + 1
-        num, den = run_tasks(
-            functools.partial(cv2.blur, np.where(mask, log_ratio, np.float32(0.0)), (k, k)),
-            functools.partial(cv2.blur, mask.astype(np.float32), (k, k)))  # fmt: skip
-        with np.errstate(invalid="ignore", divide="ignore"):
-            first = num / den
-        resid = np.abs(log_ratio - first)
-        resid[~mask] = np.nan
+        num, den = run_tasks(functools.partial(cv2.blur, masked, (k, k)),
+                             functools.partial(cv2.blur, ones, (k, k)))  # fmt: skip
+        resid = masked  # no longer needed: reused
+        _residuals(values, mask, num, den, resid)
         sample = resid[::2, ::2]  # the spread of the residuals, from a quarter of them
         finite = sample[np.isfinite(sample)]
         if finite.size >= 16:
             mad = float(np.median(finite)) * 1.4826 + 1e-6
-            # a NaN residual (no data, or none around) compares false: those are the NaN pixels
-            keep = resid <= outlier_sigmas * mad
+            # a NaN residual (no data, or none around) compares false: those are the NaN
+            # pixels; the limit in float32, as numpy compares a float32 map with it
+            keep = np.empty(shape, np.bool_)
+            _keep_inliers(resid, np.float32(outlier_sigmas * mad), keep)
     # outliers are replaced by their neighbourhood, pixels without data only inside
-    weights = None
-    if variance is not None:
-        weights = 1.0 / np.maximum(planes[1], np.float32(1e-12))
-    out = _masked_smooth(planes, keep, sigma, fill_fraction, weights)
+    out = _masked_smooth(values, var, keep, sigma, fill_fraction)
     return out[0] if variance is None else tuple(out)

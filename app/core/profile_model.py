@@ -617,7 +617,7 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(slant.ravel()[idx]) ** 2
     t = tables()
     # per band: the sigma at which the sweep its width implies also predicts its ramp
-    cols, sigma = _ramp_sigma(lambda sg: t.ramp(t.true_length(m, line, sg), line, sg) - r)
+    cols, sigma = _ramp_sigma(m, line, r)
     if cols.size < min_bands // 2:
         return None
     # only bands whose width decides their sweep at that sigma: for a sweep within
@@ -630,23 +630,54 @@ def fit_blur(m, r, line, scale, slant=None, max_pixels: int = 4000, min_bands: i
     return blur_model(sigma**2, k2[cols], s2[cols])
 
 
-def _ramp_sigma(mismatch):
-    """Per band, the blur sigma where ``mismatch(sigma)`` (predicted minus measured ramp,
-    an array over the bands) crosses zero; returns the bands that have one and it.
+def _ramp_sigma(m, line, r, still: bool = False):
+    """Per band, the blur sigma at which the ramp predicted for its sweep matches its
+    measured ramp ``r``; returns the bands that have one and it.
 
-    The predicted ramp grows with sigma: the root is the first sign change to >= 0,
-    found on a 0.05 px grid over the tables' sigma axis and interpolated linearly.
+    The sweep is the one its width ``m`` implies at that sigma
+    (:meth:`ProfileTables.true_length`), or 0 with ``still``.  The predicted ramp
+    (:meth:`ProfileTables.ramp`) grows with sigma: the root is the first sign change of
+    the mismatch to >= 0 on a 0.05 px grid over the tables' sigma axis, interpolated
+    linearly.  One kernel walks each band up the grid to its root only.
     """
+    t = tables()
     sig = np.arange(S_AXIS[0] + 0.05, S_AXIS[-1], 0.05)
-    res = np.stack([mismatch(sg) for sg in sig])
-    pos = np.isfinite(res) & (res >= 0)
-    first = np.argmax(pos, axis=0)
-    cols = np.flatnonzero(pos.any(axis=0) & (first > 0))
-    j = first[cols]
-    r0, r1 = res[j - 1, cols], res[j, cols]
+    n = np.size(m)
+    first, r0, r1 = np.empty(n, np.int64), np.empty(n), np.empty(n)
+    bands = (np.ascontiguousarray(v, np.float64).ravel() for v in (m, line, r))
+    _ramp_roots(t.inverse, t.r, S_AXIS, sig, *bands, still, first, r0, r1)
+    cols = np.flatnonzero(first > 0)
+    j, r0, r1 = first[cols], r0[cols], r1[cols]
     good = np.isfinite(r0) & (r1 > r0)
     cols, j, r0, r1 = cols[good], j[good], r0[good], r1[good]
     return cols, sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _ramp_roots(inverse, ramp, s_axis, sig, m, line, r, still, first, before, at):
+    """:func:`_ramp_sigma` per band ``k``: the first index ``first[k]`` of ``sig`` where
+    the predicted minus the measured ramp ``r[k]`` is finite and >= 0 (-1: none), the
+    mismatch there (``at``) and one step before (``before``; NaN at index 0).  The
+    lookups of :meth:`ProfileTables.true_length` (unless ``still``: no sweep) and
+    :meth:`ProfileTables.ramp`, on the sigmas up to the root only."""
+    lo = s_axis[0]
+    step = s_axis[1] - s_axis[0]
+    for k in range(m.shape[0]):
+        first[k] = -1
+        before[k] = np.nan
+        at[k] = np.nan
+        prev = np.nan
+        for s in range(sig.shape[0]):
+            L = 0.0
+            if not still:
+                L = trilinear_at(inverse, lo, step, W_STEP, M_STEP, sig[s], line[k], m[k])
+            v = trilinear_at(ramp, lo, step, W_STEP, L_STEP, sig[s], line[k], L) - r[k]
+            if np.isfinite(v) and v >= 0:
+                first[k] = s
+                before[k] = prev
+                at[k] = v
+                break
+            prev = v
 
 
 def blur_model(sigma2, k2, s2) -> tuple[float, float]:
@@ -721,7 +752,7 @@ def static_width_excess(m, r, line, min_bands: int = 200, max_bands: int = 20000
     if m.size < min_bands:
         return None
     t = tables()
-    cols, sigma = _ramp_sigma(lambda sg: t.ramp(np.zeros_like(m), line, sg) - r)
+    cols, sigma = _ramp_sigma(m, line, r, still=True)
     if cols.size < min_bands:
         return None
     excess = m[cols] - t.measured_width(np.zeros(cols.size), line[cols], sigma)
@@ -759,9 +790,8 @@ def static_blur(m, r, line, scale, slant=None, min_bands: int = 200):
         return None
     m, r, line, s2 = m[idx], r[idx], line[idx], scale[idx] ** 2
     k2 = np.ones_like(m) if slant is None else 1.0 + np.nan_to_num(np.ravel(slant)[idx]) ** 2
-    t = tables()
     # per line: the sigma at which a line of no sweep has the measured ramp
-    cols, sigma = _ramp_sigma(lambda sg: t.ramp(np.zeros_like(m), line, sg) - r)
+    cols, sigma = _ramp_sigma(m, line, r, still=True)
     if cols.size < min_bands:
         return None
     a, b = blur_model(sigma**2, k2[cols], s2[cols])

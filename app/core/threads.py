@@ -7,11 +7,17 @@ cold cache, on the path to a first depth picture) for the same speed.
 
 The pool is created on first use and shared by every pipeline of the process
 (never one per call); it is not part of any pipeline's state, so pickled or
-forked pipelines do not carry it: a forked child starts its own.
+forked pipelines do not carry it: a forked child starts its own.  It has one
+thread fewer than the cores, because the calling thread always works too, and a
+caller that would wait for a task no pool thread has started yet runs it itself
+(:func:`_finish`): nested calls (a band of rows inside a task of
+:func:`run_tasks`) never wait behind a busy pool, and never run more threads
+than cores.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -46,11 +52,13 @@ def threads() -> int:
 
 
 def shared_pool() -> ThreadPoolExecutor:
-    """The process's kernel thread pool, created on first use."""
+    """The process's kernel thread pool (one thread fewer than :func:`threads`), created on
+    first use."""
     global _pool
     with _lock:
         if _pool is None:
-            _pool = ThreadPoolExecutor(threads(), "lightflow-rows", initializer=_mark_worker)
+            _pool = ThreadPoolExecutor(max(1, threads() - 1), "lightflow-rows",
+                                       initializer=_mark_worker)  # fmt: skip
             # OpenCV's own thread pool would compete with this one for the same cores:
             # its threaded grey closing of a 1600x1200 frame took 2-11 ms on 2 cores,
             # against 1.4 ms on one thread
@@ -82,10 +90,10 @@ def run_rows(kernel, n: int, *args) -> None:
         return
     edges = [n * b // t for b in range(t + 1)]
     pool = shared_pool()
-    futures = [pool.submit(kernel, *args, edges[b], edges[b + 1]) for b in range(t - 1)]
+    calls = [functools.partial(kernel, *args, edges[b], edges[b + 1]) for b in range(t - 1)]
+    futures = [pool.submit(c) for c in calls]
     kernel(*args, edges[t - 1], edges[t])
-    for f in futures:
-        f.result()
+    _finish(futures, calls)
 
 
 def run_tasks(*tasks):
@@ -110,4 +118,18 @@ def run_tasks(*tasks):
     pool = shared_pool()
     futures = [pool.submit(task) for task in tasks[:-1]]
     last = tasks[-1]()
-    return [*(f.result() for f in futures), last]
+    return [*_finish(futures, tasks[:-1]), last]
+
+
+def _finish(futures: list, calls) -> list:
+    """The results of ``futures`` (of ``calls``); those no pool thread has started yet
+    run on this thread (from the last: the pool takes them from the first), instead of
+    waiting behind whatever keeps the pool busy (another caller's tasks, or this
+    caller's outer task)."""
+    done = [None] * len(futures)
+    ran = [False] * len(futures)
+    for k in range(len(futures) - 1, -1, -1):
+        if futures[k].cancel():
+            done[k] = calls[k]()
+            ran[k] = True
+    return [done[k] if ran[k] else f.result() for k, f in enumerate(futures)]
