@@ -15,23 +15,11 @@ from lightflow.app.core.snapping import (
     LineSnapping,
     column_direction,
     desnap_intervals,
-    snap_offsets,
 )
 
 WIDTH = 1280
 PITCH = 25.82  # most neighbours 26 columns apart, every fifth or sixth 25
 PATTERN = Pattern(channel="blue", kind="uniform", width_px=3.0, pitch_px=PITCH, offset_px=0.0)
-
-
-def test_offsets_are_the_lit_columns_centre_less_the_nominal_one():
-    table = snap_offsets(PATTERN, WIDTH)
-    # a 3-column line lights the three columns around the nearest whole one
-    f = np.arange(table.size) / table.size
-    expect = np.where(f < 0.5, -f, 1.0 - f)
-    expect[f == 0.5] = 0.0  # at a half, four columns are lit, centred on it
-    assert np.allclose(table, expect, atol=1e-9)
-    exp2 = Pattern(channel="red", kind="exp2", width_px=3.0, lines=40)
-    assert snap_offsets(exp2, WIDTH) is None
 
 
 def _rows(centres, rows=9, noise=0.05):
@@ -76,14 +64,11 @@ def test_intervals_of_whole_column_lines_come_out_right(first, noise):
     # spacings of 25 and 26 columns read as 25.82: 1.3 % (p90) as measured
     assert np.percentile(before[:, 1:-1], 90) > 0.01
     if noise == 0.0:
-        # measured 0.05 % (p90); the phase is found to 1/64 of a column, so a line whose
-        # centre lies that near half a column can be put on the wrong side (1 % off)
-        assert np.percentile(after, 90) < 0.001
-        assert np.all(np.sum(after > 0.002, axis=1) <= 2)  # the two bands beside it
+        assert after.max() < 0.0003  # measured 0.013 %
     else:
-        # 0.05 px of centre noise alone is 0.1 % (median) and 0.3 % (p90)
+        # 0.05 px of centre noise alone: measured 0.1 % (median) and 0.21-0.24 % (p90)
         assert np.median(after) < 0.0015
-        assert np.percentile(after[:, 1:-1], 90) < 0.004
+        assert np.percentile(after[:, 1:-1], 90) < 0.003
 
 
 def test_lines_drawn_at_their_nominal_centres_keep_their_intervals():

@@ -14,11 +14,10 @@ within 0.3 % once the snapping is taken out.  An exp2 pattern's spacings change
 from line to line anyway, and its snapping makes them 1-5 % off, in no order.
 
 Which lines a run of bands shows is not known.  It is found per run of a row,
-among candidates: for a uniform pattern the fraction of a column at which its
-first line's nominal centre lies (:data:`PHASES` of them: the snapping depends
-on nothing else), for an exp2 pattern the index of its first line.  For each, the
-run's log spacings less the log spacings the candidate predicts should follow a
-smooth trend (a straight line, a parabola for six spacings and more).  The fit of
+among candidates: the index of the run's first line, each of which predicts the
+true spacings of the run's lines.  For each, the run's log spacings less the
+predicted ones should follow a smooth trend (a straight line, a parabola for six
+spacings and more).  The fit of
 each candidate is pooled with the runs of the same lines in :data:`REACH_ROWS`
 rows above and below (bands are paired with the nearest centre of the next row).
 A run keeps its intervals when no candidate fits clearly better (:data:`MIN_GAIN`)
@@ -27,7 +26,6 @@ than no snapping at all: a pattern drawn without it, or a run too short to tell.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numba as nb
@@ -35,13 +33,9 @@ import numpy as np
 
 from .bands import F_CENTRE, F_INTERVAL, F_VALID
 from .geometry import project_to_projector, undistort_pixels
-from .patterns import line_centres, line_footprints, lit_columns
+from .patterns import line_centres, line_footprints
 from .rig import CameraModel, Pattern, ProjectorModel
 
-#: phases of a uniform pattern's snapping tried per run (fractions of a column)
-PHASES = 64
-#: entries of the offset table per column
-TABLE_SIZE = 256
 #: rows above and below whose runs of the same lines are pooled into a run's fit
 REACH_ROWS = 3
 #: a candidate is used only when its pooled residual is below this share of no snapping's
@@ -55,25 +49,6 @@ MIN_SPACINGS = 6
 RUN_RATIO = 1.33
 #: the residual of a candidate that puts a run's lines past the pattern's ends
 IMPOSSIBLE = 1e30
-
-
-def snap_offsets(pattern: Pattern, width: int) -> np.ndarray | None:
-    """True minus nominal line centre (projector px) against the centre's fraction.
-
-    ``TABLE_SIZE`` entries for fractions ``i / TABLE_SIZE``; ``None`` for patterns
-    that are not uniform (their pitch changes from line to line).
-    """
-    if pattern.kind != "uniform":
-        return None
-    out = np.empty(TABLE_SIZE)
-    cols = np.arange(width, dtype=np.float64)
-    for i in range(TABLE_SIZE):
-        # one line (the pitch is the projector's width) at the fraction i / TABLE_SIZE
-        u = 8.0 + pattern.width_px + i / TABLE_SIZE
-        one = dataclasses.replace(pattern, pitch_px=float(width), offset_px=u, blur=None)
-        lit = lit_columns(one, width)
-        out[i] = cols[lit].mean() - u if lit.any() else 0.0
-    return out
 
 
 def column_direction(camera: CameraModel, projector: ProjectorModel, depth: float) -> int:
@@ -92,7 +67,8 @@ def column_direction(camera: CameraModel, projector: ProjectorModel, depth: floa
 
 @dataclass(frozen=True)
 class LineSnapping:
-    """One pattern's snapping as tables over candidates (rows) and a run's spacings.
+    """One pattern's snapping as tables over candidates (rows: the index ``c`` of a run's
+    first line) and the run's spacings.
 
     Attributes
     ----------
@@ -105,19 +81,14 @@ class LineSnapping:
         ``j log_d``, ``j^2 log_d`` and ``log_d^2``.
     factor : numpy.ndarray
         ``(C, n)``: nominal over true spacing.
-    modular : bool
-        Candidates are phases (uniform), so shifting one wraps around.
-    step : float
-        Pooling: a run whose first line lies ``dn`` bands further along a row has
-        the candidate ``c + dn * step`` (exp2: ``step`` is +-1) or, for phases,
-        ``c + PHASES * frac(dn * step)`` (``step``: the signed pitch).
+    direction : int
+        :func:`column_direction`: the run's band ``j`` shows line ``c + direction * j``.
     """
 
     log_d: np.ndarray
     sums: np.ndarray
     factor: np.ndarray
-    modular: bool
-    step: float
+    direction: int
 
     @staticmethod
     def of(pattern: Pattern, width: int, direction: int,
@@ -129,28 +100,17 @@ class LineSnapping:
         """
         n = bands_per_row - 1
         j = np.arange(n + 1)
-        if pattern.kind == "uniform":
-            table = snap_offsets(pattern, width)
-            step = direction * pattern.pitch_px
-            frac = (np.arange(PHASES)[:, None] / PHASES + j[None, :] * step) % 1.0
-            offsets = table[(frac * TABLE_SIZE).astype(np.int64) % TABLE_SIZE]
-            true = np.abs(step + np.diff(offsets, axis=1))
-            nominal = np.full_like(true, pattern.pitch_px)
-            modular = True
-        else:
-            nominal_c = line_centres(pattern, width)
-            true_c = line_footprints(pattern, width).mean(axis=1)
-            if true_c.size != nominal_c.size:
-                return None  # lines merged at the projector's resolution
-            lines = np.arange(nominal_c.size)[:, None] + direction * j[None, :]
-            inside = (lines >= 0) & (lines < nominal_c.size)
-            at = np.clip(lines, 0, nominal_c.size - 1)
-            with np.errstate(invalid="ignore"):
-                true = np.where(inside[:, 1:] & inside[:, :-1],
-                                np.abs(np.diff(true_c[at], axis=1)), np.nan)  # fmt: skip
-                nominal = np.abs(np.diff(nominal_c[at], axis=1))
-            step = float(direction)
-            modular = False
+        nominal_c = line_centres(pattern, width)
+        true_c = line_footprints(pattern, width).mean(axis=1)
+        if true_c.size != nominal_c.size or true_c.size < 2:
+            return None  # lines merged at the projector's resolution
+        lines = np.arange(nominal_c.size)[:, None] + direction * j[None, :]
+        inside = (lines >= 0) & (lines < nominal_c.size)
+        at = np.clip(lines, 0, nominal_c.size - 1)
+        with np.errstate(invalid="ignore"):
+            true = np.where(inside[:, 1:] & inside[:, :-1], np.abs(np.diff(true_c[at], axis=1)),
+                            np.nan)  # fmt: skip
+            nominal = np.abs(np.diff(nominal_c[at], axis=1))
         if np.nanmax(np.abs(true / nominal - 1)) < 1e-9:
             return None  # every line on a whole column: nothing to take out
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -159,7 +119,7 @@ class LineSnapping:
         sums = np.zeros((4, log_d.shape[0], n + 1))
         for k, term in enumerate((log_d, j[:-1] * log_d, j[:-1] ** 2 * log_d, log_d * log_d)):
             sums[k, :, 1:] = np.cumsum(term, axis=1)
-        return LineSnapping(log_d, sums, factor, modular, step)
+        return LineSnapping(log_d, sums, factor, int(direction))
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -283,11 +243,11 @@ def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
         Runs whose intervals were corrected.
     """
     return _desnap(bands, counts, snapping.log_d, snapping.sums, snapping.factor,
-                   snapping.modular, snapping.step)  # fmt: skip
+                   snapping.direction)  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _desnap(bands, counts, log_d, sums, factor, modular, step):
+def _desnap(bands, counts, log_d, sums, factor, direction):
     """:func:`desnap_intervals` on the tables."""
     rows = counts.shape[0]
     width = bands.shape[1]
@@ -329,12 +289,12 @@ def _desnap(bands, counts, log_d, sums, factor, modular, step):
                 continue
             tot[:] = res[r, i]
             total_dof = dof[r, i]
-            for direction in (1, -1):
+            for way in (1, -1):
                 for j in range(m + 1):
                     cur[j] = s + j
                 rr = r
                 for _ in range(REACH_ROWS):
-                    nr = rr + direction
+                    nr = rr + way
                     if nr < 0 or nr >= rows:
                         break
                     any_link = False
@@ -342,7 +302,7 @@ def _desnap(bands, counts, log_d, sums, factor, modular, step):
                         q = cur[j]
                         nxt[j] = -1
                         if q >= 0:
-                            nxt[j] = up[rr, q] if direction == 1 else down[rr, q]
+                            nxt[j] = up[rr, q] if way == 1 else down[rr, q]
                             any_link = any_link or nxt[j] >= 0
                     if not any_link:
                         break
@@ -357,7 +317,7 @@ def _desnap(bands, counts, log_d, sums, factor, modular, step):
                         seen[ib] = True
                         # line of the other run's first band, in bands from this run's
                         dn = j - (q - starts[nr, ib])
-                        _pool(tot, res[nr, ib], dn, modular, step)
+                        _pool(tot, res[nr, ib], dn * direction)
                         total_dof += dof[nr, ib]
                     for j in range(m + 1):
                         cur[j] = nxt[j]
@@ -376,19 +336,13 @@ def _desnap(bands, counts, log_d, sums, factor, modular, step):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _pool(tot, other, dn, modular, step):
+def _pool(tot, other, shift):
     """Add another run's residuals, each under the candidate it has when this run has
-    candidate ``c`` and its first line lies ``dn`` bands along."""
+    candidate ``c`` (its first line is line ``c + shift``)."""
     cands = tot.shape[0] - 1
-    if modular:
-        shift = int(np.floor(((dn * step) % 1.0) * cands + 0.5)) % cands
-        for c in range(cands):
-            tot[c] += other[(c + shift) % cands]
-    else:
-        shift = int(dn * step)
-        for c in range(cands):
-            o = c + shift
-            tot[c] += other[o] if 0 <= o < cands else IMPOSSIBLE
+    for c in range(cands):
+        o = c + shift
+        tot[c] += other[o] if 0 <= o < cands else IMPOSSIBLE
     tot[cands] += other[cands]
 
 
