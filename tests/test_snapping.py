@@ -7,8 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lightflow.app.core.bands import F_CENTRE, F_INTERVAL, F_VALID, N_FIELDS
+from lightflow.app.core.bands import BAND_PERIODIC, F_CENTRE, F_INTERVAL, F_VALID, N_FIELDS
 from lightflow.app.core.patterns import line_centres, line_footprints
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
 from lightflow.app.core.rig import Pattern, resolve_rig
 from lightflow.app.core.snapping import (
     MIN_SPACINGS,
@@ -80,12 +81,52 @@ def test_lines_drawn_at_their_nominal_centres_keep_their_intervals():
     assert np.nanmax(np.abs(bands[:, :, F_INTERVAL] / before - 1)) < 0.002
 
 
-def test_short_runs_keep_their_intervals():
+@pytest.mark.parametrize("spacings", [MIN_SPACINGS - 1, MIN_SPACINGS])
+def test_only_runs_long_enough_are_corrected(spacings):
     lit = line_footprints(PATTERN, WIDTH).mean(axis=1)
-    bands, counts = _rows(_camera(lit[7 : 7 + MIN_SPACINGS]))
+    bands, counts = _rows(_camera(lit[7 : 8 + spacings]))
     before = bands[:, :, F_INTERVAL].copy()
-    assert desnap_intervals(bands, counts, LineSnapping.of(PATTERN, WIDTH, 1, bands.shape[1])) == 0
-    assert np.array_equal(bands[:, :, F_INTERVAL], before, equal_nan=True)
+    fixed = desnap_intervals(bands, counts, LineSnapping.of(PATTERN, WIDTH, 1, bands.shape[1]))
+    assert fixed == (9 if spacings >= MIN_SPACINGS else 0)
+    if spacings < MIN_SPACINGS:
+        assert np.array_equal(bands[:, :, F_INTERVAL], before, equal_nan=True)
+
+
+def test_intervals_the_detector_did_not_take_from_both_spacings_are_left_alone():
+    # a periodic run's interval (its median spacing, which its sweep was read with),
+    # or one taken from one side of a depth edge: not the mean of the two spacings
+    lit = line_footprints(PATTERN, WIDTH).mean(axis=1)
+    bands, counts = _rows(_camera(lit[3:33]), noise=0.0)
+    bands[:, 10, F_VALID] = BAND_PERIODIC
+    bands[:, 20, F_INTERVAL] = 21.0
+    before = bands[:, :, F_INTERVAL].copy()
+    desnap_intervals(bands, counts, LineSnapping.of(PATTERN, WIDTH, 1, bands.shape[1]))
+    assert np.array_equal(bands[:, [10, 20], F_INTERVAL], before[:, [10, 20]])
+    assert not np.array_equal(bands[:, 15, F_INTERVAL], before[:, 15])
+
+
+def test_whole_pitches_and_lines_cut_by_the_projector_edge_need_nothing():
+    # a whole pitch: every line on its nominal centre except the first, which the
+    # projector's edge cuts in half (columns 0 and 1 for a centre at 0)
+    whole = Pattern(channel="blue", kind="uniform", width_px=3.0, pitch_px=18.0, offset_px=0.0)
+    assert LineSnapping.of(whole, WIDTH, 1, 160) is None
+    assert LineSnapping.of(PATTERN, WIDTH, 1, 1) is None
+    assert LineSnapping.of(PATTERN, WIDTH, 1, 160) is not None
+    rig = resolve_rig("two-projector")
+    assert DepthPipeline(rig, PipelineConfig())._snapping == [None, None]
+
+
+def test_it_can_be_turned_off():
+    rig = resolve_rig("single-projector")
+    assert all(s is not None for s in DepthPipeline(rig, PipelineConfig())._snapping)
+    off = DepthPipeline(rig, PipelineConfig(whole_columns=False))._snapping
+    assert off == [None, None]
+
+
+def test_a_band_table_wider_than_the_tables_is_refused():
+    bands, counts = _rows(_camera(np.arange(10) * PITCH), rows=2)
+    with pytest.raises(ValueError, match="bands per row"):
+        desnap_intervals(bands, counts, LineSnapping.of(PATTERN, WIDTH, 1, 8))
 
 
 def test_lines_met_in_decreasing_column_order_are_read_backwards():

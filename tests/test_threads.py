@@ -33,3 +33,27 @@ def test_a_task_that_waits_behind_a_busy_pool_runs_on_the_caller():
 
 def _fill(out, r0, r1):
     out[r0:r1] = np.arange(r0, r1)
+
+
+def test_a_failing_task_on_the_caller_waits_for_the_running_ones():
+    # a task still running on the pool writes into the caller's arrays: the exception
+    # reaches the caller only after it has finished
+    started = threading.Event()
+    finished = []
+
+    def slow():
+        started.set()
+        threading.Event().wait(0.2)  # the pool thread is busy for a while
+        finished.append(True)
+
+    def fail():
+        started.wait(5.0)
+        raise RuntimeError("boom")
+
+    try:
+        run_tasks(slow, fail)
+    except RuntimeError as exc:
+        assert str(exc) == "boom"
+    else:
+        raise AssertionError("the caller's exception was lost")
+    assert finished == [True]

@@ -1014,35 +1014,52 @@ def _side_interval(out, ns, k, k1, k2, itol):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _slant_row(bands, counts, row_y, i, o):
-    """Slant (columns per row) of each band of row ``i`` from its partner in row ``o``.
+def nearest_partners(bands, counts, i, o, reach, out):
+    """Per band of row ``i``: the band of row ``o`` with the nearest centre, or -1.
 
-    Lines on tilted or curved surfaces are slanted; along a row their edges are
-    then wider by sqrt(1 + slant^2) than the camera blur across them.
+    A partner farther than ``reach`` times the band's interval (20 px without
+    one) is none.  Bands are in column order in both rows: one forward sweep
+    finds them.
     """
-    m = 0  # bands are in column order in both rows: one forward sweep finds partners
-    dy = row_y[o] - row_y[i]
+    m = 0
     for k in range(counts[i]):
-        bands[i, k, F_SLANT] = np.nan
+        out[k] = -1
         c = bands[i, k, F_CENTRE]
         if np.isnan(c):
             continue
-        best = 1e9
+        best = -1
+        dist = 1e18
         while m < counts[o]:
             co = bands[o, m, F_CENTRE]
             if np.isnan(co):
                 m += 1
                 continue
-            if abs(co - c) <= abs(best):
-                best = co - c
-                if co >= c:
-                    break
-                m += 1
-            else:
+            d = abs(co - c)
+            if d > dist:
                 break
+            best = m
+            dist = d
+            if co >= c:
+                break
+            m += 1
         iv = bands[i, k, F_INTERVAL]
-        if abs(best) < 0.3 * (iv if iv > 0 else 20.0):
-            bands[i, k, F_SLANT] = best / dy
+        if best >= 0 and dist < reach * (iv if iv > 0 else 20.0):
+            out[k] = best
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _slant_row(bands, counts, row_y, i, o, partner):
+    """Slant (columns per row) of each band of row ``i`` from its partner in row ``o``.
+
+    Lines on tilted or curved surfaces are slanted; along a row their edges are
+    then wider by sqrt(1 + slant^2) than the camera blur across them.
+    """
+    dy = row_y[o] - row_y[i]
+    nearest_partners(bands, counts, i, o, 0.3, partner)
+    for k in range(counts[i]):
+        q = partner[k]
+        bands[i, k, F_SLANT] = (bands[o, q, F_CENTRE] - bands[i, k, F_CENTRE]) / dy \
+            if q >= 0 else np.nan
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -1056,8 +1073,9 @@ def band_slants(bands, counts, row_y):
         for k in range(counts[0] if rows else 0):
             bands[0, k, F_SLANT] = 0.0
         return
+    partner = np.empty(bands.shape[1], np.int64)
     for i in range(rows):
-        _slant_row(bands, counts, row_y, i, i - 1 if i > 0 else 1)
+        _slant_row(bands, counts, row_y, i, i - 1 if i > 0 else 1, partner)
 
 
 def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=1):

@@ -599,10 +599,12 @@ class FlowModel:
             interval_ratio = np.empty((gh, gw), np.float32)
             banded = np.empty((gh, gw), np.float32)
             why = np.empty((gh, gw), np.uint8)
-            todo = np.ones((gh, gw), np.bool_)
+            todo = None
         else:
             sweeps, moving_at, pitch, sens, interval_ratio, banded, why = (
                 a.copy() for a in first.readings)  # fmt: skip
+        if todo is None:
+            todo = np.ones((gh, gw), np.bool_)
         measured = self.blur_measured
         # bands of grid rows on a thread per core (the kernels release the GIL)
         run_rows(

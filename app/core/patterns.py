@@ -33,16 +33,23 @@ def line_centres(pattern: Pattern, width: int) -> np.ndarray:
     return width * (2 - 2.0 ** (1 - k / n))
 
 
+def line_columns(pattern: Pattern, width: int) -> np.ndarray:
+    """``(n, 2)`` int: the first and last whole column each line covers,
+    ``|x - u_k| <= width_px / 2``, before clipping to the projector's ``width``."""
+    u = line_centres(pattern, width)
+    half = pattern.width_px / 2
+    lo = np.ceil(u - half - 1e-9).astype(np.int64)
+    hi = np.floor(u + half + 1e-9).astype(np.int64)
+    return np.stack([lo, hi], axis=1)
+
+
 def lit_columns(pattern: Pattern, width: int) -> np.ndarray:
     """Boolean ``(width,)``: which projector columns the pattern lights."""
-    x = np.arange(width, dtype=np.float64)
     lit = np.zeros(width, dtype=bool)
-    half = pattern.width_px / 2
-    for u in line_centres(pattern, width):
-        lo = max(0, math.ceil(u - half - 1e-9))
-        hi = min(width - 1, math.floor(u + half + 1e-9))
+    for lo, hi in line_columns(pattern, width):
+        lo, hi = max(0, lo), min(width - 1, hi)
         if hi >= lo:
-            lit[lo : hi + 1] |= np.abs(x[lo : hi + 1] - u) <= half + 1e-9
+            lit[lo : hi + 1] = True
     return lit
 
 

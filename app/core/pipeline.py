@@ -18,6 +18,7 @@ from . import causes as cz
 from . import intervals as iv
 from . import overlap as ov
 from . import response as rsp
+from . import snapping
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
 from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
@@ -339,17 +340,22 @@ class DepthPipeline:
     def warm_up_optional(self) -> None:
         """Compile (or load) the kernels of the stages the test image of :meth:`warm_up`
         does not reach: overlapping bands, when they are measured (about 6 s of
-        compilation on a first run, the largest part of the pipeline's), and the depth
-        from the line intervals (about 1.3 s; it runs only where lines move too little).
+        compilation on a first run, the largest part of the pipeline's), the depth
+        from the line intervals (about 1.3 s; it runs only where lines move too little),
+        and the whole-column intervals (about 3.7 s; only for patterns whose lines are
+        off their nominal centres).
         """
         if self._overlap is not None:
             ov.warm_up(self._overlap)
         if self.intervals is not None and self.config.interval_depth:
             iv.warm_up()
+        if any(s is not None for s in self._snapping):
+            snapping.warm_up()
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
-                           "_full_size", "_linear_table", "_overlap", "_periodic"})  # fmt: skip
+                           "_full_size", "_linear_table", "_overlap", "_periodic",
+                           "_snapping"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:

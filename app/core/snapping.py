@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .bands import F_CENTRE, F_INTERVAL, F_VALID
+from .bands import BAND_VALID, F_CENTRE, F_INTERVAL, F_VALID, N_FIELDS, nearest_partners
 from .geometry import project_to_projector, undistort_pixels
-from .patterns import line_centres, line_footprints
+from .patterns import line_centres, line_columns
 from .rig import CameraModel, Pattern, ProjectorModel
 
 #: rows above and below whose runs of the same lines are pooled into a run's fit
@@ -49,6 +49,9 @@ MIN_SPACINGS = 6
 RUN_RATIO = 1.33
 #: the residual of a candidate that puts a run's lines past the pattern's ends
 IMPOSSIBLE = 1e30
+#: a band's partner in the next row is the nearest centre within this share of its
+#: interval
+LINK_REACH = 0.25
 
 
 def column_direction(camera: CameraModel, projector: ProjectorModel, depth: float) -> int:
@@ -56,7 +59,18 @@ def column_direction(camera: CameraModel, projector: ProjectorModel, depth: floa
 
     A projector mounted upside down, or seen in a mirror, lights columns that
     decrease from left to right in the camera; its lines then meet a run of bands
-    in the other order.  Taken at the image centre, at ``depth`` (m).
+    in the other order.
+
+    Parameters
+    ----------
+    camera, projector : CameraModel, ProjectorModel
+    depth : float
+        Depth (m) of the point seen at the image centre that the test projects.
+
+    Returns
+    -------
+    int
+        +1 or -1.
     """
     cx, cy = 0.5 * camera.width, 0.5 * camera.height
     xy = undistort_pixels(camera.K, camera.dist, np.array([[cx - 8.0, cy], [cx + 8.0, cy]]))
@@ -95,15 +109,34 @@ class LineSnapping:
            bands_per_row: int) -> LineSnapping | None:  # fmt: skip
         """The tables of one pattern, for runs of up to ``bands_per_row`` bands.
 
-        ``width``: the projector's; ``direction``: :func:`column_direction`.
-        ``None`` where the pattern lights every line on its nominal centre.
+        Parameters
+        ----------
+        pattern : Pattern
+        width : int
+            The projector's width (px).
+        direction : int
+            :func:`column_direction`.
+        bands_per_row : int
+            Width of the detector's band table.
+
+        Returns
+        -------
+        LineSnapping or None
+            ``None`` where every line sits on its nominal centre (a uniform
+            pattern with a whole pitch and offset), so there is nothing to take out.
         """
         n = bands_per_row - 1
+        if n < 1:
+            return None
         j = np.arange(n + 1)
         nominal_c = line_centres(pattern, width)
-        true_c = line_footprints(pattern, width).mean(axis=1)
-        if true_c.size != nominal_c.size or true_c.size < 2:
-            return None  # lines merged at the projector's resolution
+        cols = line_columns(pattern, width)
+        # a line cut by the projector's edge is centred on what is left of it: such
+        # lines are not used (no candidate puts a run on them)
+        whole = (cols[:, 0] >= 0) & (cols[:, 1] <= width - 1)
+        true_c = np.where(whole, 0.5 * (cols[:, 0] + cols[:, 1]), np.nan)
+        if nominal_c.size < 2:
+            return None
         lines = np.arange(nominal_c.size)[:, None] + direction * j[None, :]
         inside = (lines >= 0) & (lines < nominal_c.size)
         at = np.clip(lines, 0, nominal_c.size - 1)
@@ -111,8 +144,9 @@ class LineSnapping:
             true = np.where(inside[:, 1:] & inside[:, :-1], np.abs(np.diff(true_c[at], axis=1)),
                             np.nan)  # fmt: skip
             nominal = np.abs(np.diff(nominal_c[at], axis=1))
-        if np.nanmax(np.abs(true / nominal - 1)) < 1e-9:
-            return None  # every line on a whole column: nothing to take out
+            off = np.abs(true / nominal - 1)
+        if not np.any(off > 1e-9):
+            return None  # every line on its nominal centre: nothing to take out
         with np.errstate(invalid="ignore", divide="ignore"):
             log_d = np.vstack([np.log(true), np.zeros((1, n))])
             factor = nominal / true
@@ -125,7 +159,8 @@ class LineSnapping:
 @nb.njit(cache=True, error_model="numpy")
 def _run_residuals(bands, s, m, log_d, sums, out):
     """Per candidate (and, last, no snapping): the squared residual of the run's log
-    spacings less the candidate's from a smooth trend; returns the degrees of freedom.
+    spacings less the candidate's from a smooth trend (zeros for runs too short to
+    tell).
 
     The trend is fitted on the orthogonal basis 1, t, t^2 - mean over the centred
     spacing index t; the residual is the sum of squares less the three projections,
@@ -134,7 +169,7 @@ def _run_residuals(bands, s, m, log_d, sums, out):
     """
     out[:] = 0.0
     if m < 3:
-        return 0
+        return
     quad = m >= 6
     c = 0.5 * (m - 1)
     st = 0.0
@@ -169,7 +204,6 @@ def _run_residuals(bands, s, m, log_d, sums, out):
             yq = (y2 - 2.0 * c * y1 + c * c * y0) - st / m * y0
             r -= yq * yq / sq
         out[ph] = max(r, 0.0) if np.isfinite(r) else IMPOSSIBLE
-    return m - (3 if quad else 2)
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -198,35 +232,6 @@ def _runs(bands, count, starts, ends):
     return nr
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _link(bands, counts, r, o, out):
-    """Per band of row ``r``: the band of row ``o`` with the nearest centre, or -1."""
-    m = 0  # centres are in column order in both rows: one forward sweep finds them
-    for q in range(counts[r]):
-        out[q] = -1
-        c = bands[r, q, F_CENTRE]
-        if not np.isfinite(c):
-            continue
-        best = -1
-        dist = 1e18
-        while m < counts[o]:
-            co = bands[o, m, F_CENTRE]
-            if not np.isfinite(co):
-                m += 1
-                continue
-            d = abs(co - c)
-            if d > dist:
-                break
-            best = m
-            dist = d
-            if co >= c:
-                break
-            m += 1
-        iv = bands[r, q, F_INTERVAL]
-        if best >= 0 and dist < 0.25 * (iv if iv > 0 else 20.0):
-            out[q] = best
-
-
 def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
     """Take the column snapping out of every valid band's ``F_INTERVAL`` (in place).
 
@@ -242,6 +247,9 @@ def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
     int
         Runs whose intervals were corrected.
     """
+    if bands.shape[1] > snapping.log_d.shape[1] + 1:
+        raise ValueError(f"desnap_intervals: {bands.shape[1]} bands per row, tables for "
+                         f"{snapping.log_d.shape[1] + 1}")  # fmt: skip
     return _desnap(bands, counts, snapping.log_d, snapping.sums, snapping.factor,
                    snapping.direction)  # fmt: skip
 
@@ -262,19 +270,18 @@ def _desnap(bands, counts, log_d, sums, factor, direction):
         most = max(most, nruns[r])
     # rows hold a few runs: the residuals are sized by the most, not by the bands
     res = np.empty((rows, most, cands + 1))
-    dof = np.empty((rows, most), np.int64)
     for r in range(rows):
         run_of[r, : counts[r]] = -1
         for i in range(nruns[r]):
             s = starts[r, i]
             e = ends[r, i]
             run_of[r, s : e + 1] = i
-            dof[r, i] = _run_residuals(bands[r], s, e - s, log_d, sums, res[r, i])
+            _run_residuals(bands[r], s, e - s, log_d, sums, res[r, i])
     up = np.empty((rows, width), np.int64)  # link to the row below (r + 1)
     down = np.empty((rows, width), np.int64)  # link to the row above (r - 1)
     for r in range(rows - 1):
-        _link(bands, counts, r, r + 1, up[r])
-        _link(bands, counts, r + 1, r, down[r + 1])
+        nearest_partners(bands, counts, r, r + 1, LINK_REACH, up[r])
+        nearest_partners(bands, counts, r + 1, r, LINK_REACH, down[r + 1])
     fixed = 0
     tot = np.empty(cands + 1)
     cur = np.empty(width, np.int64)
@@ -288,7 +295,6 @@ def _desnap(bands, counts, log_d, sums, factor, direction):
             if m < MIN_SPACINGS:
                 continue
             tot[:] = res[r, i]
-            total_dof = dof[r, i]
             for way in (1, -1):
                 for j in range(m + 1):
                     cur[j] = s + j
@@ -318,12 +324,9 @@ def _desnap(bands, counts, log_d, sums, factor, direction):
                         # line of the other run's first band, in bands from this run's
                         dn = j - (q - starts[nr, ib])
                         _pool(tot, res[nr, ib], dn * direction)
-                        total_dof += dof[nr, ib]
                     for j in range(m + 1):
                         cur[j] = nxt[j]
                     rr = nr
-            if total_dof < 1:
-                continue
             best = 0
             for ph in range(1, cands):
                 if tot[ph] < tot[best]:
@@ -357,15 +360,33 @@ def _correct_run(bands, s, m, factor):
         ns[j] = sp[j] * factor[j]
     for j in range(m + 1):
         k = s + j
-        if not bands[k, F_VALID] > 0:
+        # only valid bands measured alone whose interval is the detector's plain one:
+        # the mean of their two spacings, or the linear extrapolation at a run's end
+        # (not one taken from one side of a depth edge or a trend, nor a periodic
+        # run's, which its sweep was read with)
+        if bands[k, F_VALID] != BAND_VALID:
             continue
         if 0 < j < m:
+            plain = 0.5 * (sp[j - 1] + sp[j])
             f = (ns[j - 1] + ns[j]) / (sp[j - 1] + sp[j])
         elif m >= 2:
-            # the run's end: the one-sided interval the detector extrapolates
             a1, a2 = (ns[0], ns[1]) if j == 0 else (ns[m - 1], ns[m - 2])
             b1, b2 = (sp[0], sp[1]) if j == 0 else (sp[m - 1], sp[m - 2])
-            f = (1.5 * a1 - 0.5 * a2) / (1.5 * b1 - 0.5 * b2)
+            plain = 1.5 * b1 - 0.5 * b2
+            f = (1.5 * a1 - 0.5 * a2) / plain
         else:
-            f = ns[0] / sp[0]
-        bands[k, F_INTERVAL] *= f
+            continue
+        if abs(bands[k, F_INTERVAL] - plain) <= 1e-9 * plain:
+            bands[k, F_INTERVAL] *= f
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernels on a tiny run."""
+    pattern = Pattern(channel="red", kind="uniform", width_px=3.0, pitch_px=20.4,
+                      offset_px=0.0)  # fmt: skip
+    snapping = LineSnapping.of(pattern, 400, 1, 12)
+    bands = np.full((2, 12, N_FIELDS), np.nan)
+    bands[:, :10, F_CENTRE] = 10.0 + 20.4 * np.arange(10)
+    bands[:, :10, F_INTERVAL] = 20.4
+    bands[:, :10, F_VALID] = BAND_VALID
+    desnap_intervals(bands, np.array([10, 10]), snapping)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import cv2
 
@@ -92,7 +92,11 @@ def run_rows(kernel, n: int, *args) -> None:
     pool = shared_pool()
     calls = [functools.partial(kernel, *args, edges[b], edges[b + 1]) for b in range(t - 1)]
     futures = [pool.submit(c) for c in calls]
-    kernel(*args, edges[t - 1], edges[t])
+    try:
+        kernel(*args, edges[t - 1], edges[t])
+    except BaseException:
+        _settle(futures)
+        raise
     _finish(futures, calls)
 
 
@@ -117,7 +121,11 @@ def run_tasks(*tasks):
         return [task() for task in tasks]
     pool = shared_pool()
     futures = [pool.submit(task) for task in tasks[:-1]]
-    last = tasks[-1]()
+    try:
+        last = tasks[-1]()
+    except BaseException:
+        _settle(futures)
+        raise
     return [*_finish(futures, tasks[:-1]), last]
 
 
@@ -128,8 +136,20 @@ def _finish(futures: list, calls) -> list:
     caller's outer task)."""
     done = [None] * len(futures)
     ran = [False] * len(futures)
-    for k in range(len(futures) - 1, -1, -1):
-        if futures[k].cancel():
-            done[k] = calls[k]()
-            ran[k] = True
-    return [done[k] if ran[k] else f.result() for k, f in enumerate(futures)]
+    try:
+        for k in range(len(futures) - 1, -1, -1):
+            if futures[k].cancel():
+                done[k] = calls[k]()
+                ran[k] = True
+        return [done[k] if ran[k] else f.result() for k, f in enumerate(futures)]
+    except BaseException:
+        _settle(futures)
+        raise
+
+
+def _settle(futures: list) -> None:
+    """After an exception on the calling thread: tasks not started never start, and
+    those running finish before it propagates (they write into the caller's arrays)."""
+    for f in futures:
+        f.cancel()
+    wait(futures)
