@@ -306,10 +306,9 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
-        "from lightflow.app.core import intervals, overlap, snapping\n"
+        "from lightflow.app.core import intervals, overlap\n"
         "intervals.warm_up()\n"
         "overlap.warm_up()\n"
-        "snapping.warm_up()\n"
         "print('overlap', flush=True)\n"
     )
 
