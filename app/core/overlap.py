@@ -79,6 +79,7 @@ from .bands import (
     F_VALID,
     FLOOR_GAPS,
     N_FIELDS,
+    nearest_partners,
     row_signals,
 )
 from .threads import run_rows
@@ -663,6 +664,13 @@ FLOOR_REACH = FLOOR_GAPS
 #: bands past a run's ends continue its pulse train when their spacing, length and height
 #: are the run's within this share (a band as long but not a pulse is twice as high or more)
 CONTINUATION_TOLERANCE = 0.3
+#: sweeps down and up the rows that carry a measured train to the rows above and below,
+#: where no clean gap shows the floor (:func:`_flood_trains`; chosen on tuning rigs 4, 9 and
+#: 10, whose dense pattern sweeps 1.1-1.3 intervals at the matrix's exposures: their boards
+#: read tens of centimetres off where a row's pulses passed for short bands), and how far
+#: (line intervals) a band's link to the next row reaches (as the slant's links)
+FLOOD_PASSES = 2
+FLOOD_REACH = 0.3
 #: largest deviation of a run's centre spacings from their median (share of it): the
 #: pulses of overlapping bands are exactly periodic on a smooth surface
 RUN_SPACING_TOLERANCE = 0.1
@@ -976,6 +984,16 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     trains = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
     _reject_continuations(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
                           CONTINUATION_TOLERANCE)  # fmt: skip
+    # the rows above and below a measured train carry it too, where no clean gap near them
+    # gave the floor: their pulses are measured with the train's L / B as the reference
+    # for n (those that cannot be stay rejected)
+    flooded = 0
+    if len(trains):
+        member = np.full(bands.shape[:3], -1, np.int64)
+        _flood_trains(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
+                      CONTINUATION_TOLERANCE, FLOOD_REACH, FLOOD_PASSES, member)  # fmt: skip
+        flooded = _measure_flooded(image, weights, row_y, bands, counts, member,
+                                   out[:, O_SWEEP] / B, line_px, pitch, blur, params)  # fmt: skip
     # tight runs last: the pulses of a train far from any clean gap look like tight valid
     # bands (and their floor like n = 0); those continuing a measured train are rejected
     # by now, and a tight run that holds one is not measured
@@ -987,7 +1005,76 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     codes = bands[pat[measured, None], runs[measured, 0:1], np.minimum(k, last), F_VALID]
     still = np.all((k > last) | (codes == BAND_VALID), axis=1)
     _mark_runs(bands, pat, runs, measured[still], out[:, O_SWEEP], B, True)
-    return len(done) + int(np.count_nonzero(still))
+    return len(done) + int(np.count_nonzero(still)) + flooded
+
+
+def _measure_flooded(image, weights, row_y, bands, counts, member, train_sweeps, line_px,
+                     pitch, blur, params: OverlapParams) -> int:  # fmt: skip
+    """Measure the runs of pulses :func:`_flood_trains` found, each with its train's ``L / B``
+    as the reference for ``n`` (``train_sweeps``, per run of ``member``); returns the number
+    measured.  Their own rows show no clean gap: the floor is no reference there."""
+    size = int(counts.sum()) // MIN_RUN_BANDS + 1
+    found = np.empty((size, 5), np.int64)
+    m = _find_member_runs(bands, counts, member, MIN_RUN_BANDS, found)
+    if m == 0:
+        return 0
+    found = found[:m]
+    prep = np.empty((m, 6))
+    pat = found[:, 0]
+    for p in range(2):
+        sel = np.flatnonzero(pat == p)
+        if len(sel):
+            part = np.empty((len(sel), 6))
+            _prepare_runs(bands[p], np.ascontiguousarray(found[sel, 1:4]), len(sel),
+                          RUN_SPACING_TOLERANCE, image.shape[1], part)  # fmt: skip
+            prep[sel] = part
+    ok = np.isfinite(prep[:, 0])
+    if not ok.any():
+        return 0
+    found, prep, pat = found[ok], prep[ok], pat[ok]
+    rows_used = np.unique(found[:, 1])
+    signals = np.empty((2 * len(rows_used), image.shape[1]))
+    for i, r in enumerate(rows_used):
+        signals[2 * i : 2 * i + 2] = row_signals(image, int(row_y[r]), weights)
+    B = prep[:, 0]
+    mag = B / pitch[pat]
+    sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+    row = 2 * np.searchsorted(rows_used, found[:, 1]) + pat
+    out = measure_stretches(signals, row, prep[:, 1].astype(np.int64),
+                            prep[:, 2].astype(np.int64), B, line_px[pat] * mag, sigma,
+                            prior=train_sweeps[found[:, 4]], params=params)  # fmt: skip
+    done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
+    _mark_runs(bands, pat, np.ascontiguousarray(found[:, 1:4]), done, out[:, O_SWEEP], B, True)
+    return len(done)
+
+
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+def _find_member_runs(bands, counts, member, min_bands, found):
+    """Runs of at least ``min_bands`` neighbouring overlap-rejected bands of one train
+    (``member``): ``found[m] = (pattern, row, first, last, train)``; returns their number."""
+    m = 0
+    for p in range(2):
+        for r in range(counts.shape[1]):
+            n = counts[p, r]
+            k = 0
+            while k < n:
+                q = member[p, r, k]
+                if q < 0 or bands[p, r, k, F_VALID] != BAND_OVERLAP:
+                    k += 1
+                    continue
+                j = k
+                while (j + 1 < n and member[p, r, j + 1] == q
+                       and bands[p, r, j + 1, F_VALID] == BAND_OVERLAP):  # fmt: skip
+                    j += 1
+                if j - k + 1 >= min_bands and m < found.shape[0]:
+                    found[m, 0] = p
+                    found[m, 1] = r
+                    found[m, 2] = k
+                    found[m, 3] = j
+                    found[m, 4] = q
+                    m += 1
+                k = j + 1
+    return m
 
 
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
@@ -1002,6 +1089,106 @@ def _mark_runs(bands, pat, runs, done, sweep, B, spacing):
             if spacing:
                 bands[p, r, k, F_INTERVAL] = B[q]
             bands[p, r, k, F_VALID] = BAND_PERIODIC
+
+
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes, member):
+    """Mark as one train's pulses the bands linked to it across rows, and reject them.
+
+    A pulse train (bands swept past their neighbours, ``n >= 1``) whose rows show no clean
+    gap a few intervals to either side has no floor to read ``n`` from: there its pulses
+    pass the detector's tests as short bands of their own, and the sweep reads whole
+    intervals short, a depth tens of centimetres off.  Where a row holds a measured
+    train (``trains``, runs measured with ``n >= 1``), the rows above and below it carry
+    the same train: from its bands, band links (the nearest centre in the next row,
+    within ``reach`` intervals) and row neighbours (one interval apart) whose length and
+    height are the linked pulse's within ``tol`` (and the train's within twice that)
+    are its pulses too.  ``passes`` sweeps down and up the rows.  ``member[p, r, k]``
+    gets the index into ``runs`` of the train of each band marked (-1 elsewhere); the
+    valid bands marked become ``BAND_OVERLAP``.  Returns the number of them.
+    """
+    ref_len = np.full(member.shape, np.nan)
+    ref_height = np.full(member.shape, np.nan)
+    heights = np.empty(runs.shape[0])
+    for q in trains:
+        p, r = pat[q], runs[q, 0]
+        n = runs[q, 2] - runs[q, 1] + 1
+        hs = np.empty(n)
+        for i in range(n):
+            hs[i] = bands[p, r, runs[q, 1] + i, F_HEIGHT]
+        heights[q] = _median(hs)
+        for k in range(runs[q, 1], runs[q, 2] + 1):
+            member[p, r, k] = q
+            ref_len[p, r, k] = pulse[q]
+            ref_height[p, r, k] = heights[q]
+        for side in range(2):  # along the row first, as _reject_continuations
+            _walk_row(bands, counts, p, r, runs[q, 2] if side else runs[q, 1], 1 if side else -1,
+                      q, B[q], pulse, heights, tol, member, ref_len, ref_height)  # fmt: skip
+    partner = np.empty(bands.shape[2], np.int64)
+    rows = counts.shape[1]
+    marked = 0
+    for _ in range(passes):
+        for down in (True, False):
+            for t in range(1, rows):
+                o = t if down else rows - 1 - t  # the row to mark, from its neighbour r
+                r = o - 1 if down else o + 1
+                for p in range(2):
+                    if counts[p, o] == 0 or counts[p, r] == 0:
+                        continue
+                    nearest_partners(bands[p], counts[p], o, r, reach, partner)
+                    for k in range(counts[p, o]):
+                        j = partner[k]
+                        if j < 0 or member[p, o, k] >= 0 or member[p, r, j] < 0:
+                            continue
+                        q = member[p, r, j]
+                        if not _pulse_like(bands[p, o, k], ref_len[p, r, j], ref_height[p, r, j],
+                                           pulse[q], heights[q], tol):  # fmt: skip
+                            continue
+                        member[p, o, k] = q
+                        ref_len[p, o, k] = bands[p, o, k, F_LENGTH]
+                        ref_height[p, o, k] = bands[p, o, k, F_HEIGHT]
+                        for step in (-1, 1):
+                            _walk_row(bands, counts, p, o, k, step, q, B[q], pulse, heights, tol,
+                                      member, ref_len, ref_height)  # fmt: skip
+    for p in range(2):
+        for r in range(rows):
+            for k in range(counts[p, r]):
+                if member[p, r, k] >= 0 and bands[p, r, k, F_VALID] == BAND_VALID:
+                    bands[p, r, k, F_VALID] = BAND_OVERLAP
+                    marked += 1
+    return marked
+
+
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
+def _pulse_like(band, length, height, train_length, train_height, tol):
+    """Whether ``band`` (overlap-rejected or valid) is as long and high as a linked pulse
+    (within ``tol``) and as its train's (within ``2 tol``)."""
+    if not (band[F_VALID] == BAND_VALID or band[F_VALID] == BAND_OVERLAP):
+        return False
+    lb, hb = band[F_LENGTH], band[F_HEIGHT]
+    return (abs(lb - length) <= tol * length and abs(hb - height) <= tol * height
+            and abs(lb - train_length) <= 2.0 * tol * train_length
+            and abs(hb - train_height) <= 2.0 * tol * train_height)  # fmt: skip
+
+
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
+def _walk_row(bands, counts, p, r, k, step, q, b, pulse, heights, tol, member, ref_len,
+              ref_height):  # fmt: skip
+    """From band ``k`` of row ``r`` along the row (``step``): the bands one interval ``b``
+    apart (within ``tol``) and pulse-like become train ``q``'s, until the first that is not."""
+    prev = bands[p, r, k, F_CENTRE]
+    i = k + step
+    while 0 <= i < counts[p, r] and member[p, r, i] < 0:
+        band = bands[p, r, i]
+        if not (abs(abs(band[F_CENTRE] - prev) - b) <= tol * b
+                and _pulse_like(band, ref_len[p, r, i - step], ref_height[p, r, i - step],
+                                pulse[q], heights[q], tol)):  # fmt: skip
+            break
+        member[p, r, i] = q
+        ref_len[p, r, i] = band[F_LENGTH]
+        ref_height[p, r, i] = band[F_HEIGHT]
+        prev = band[F_CENTRE]
+        i += step
 
 
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
