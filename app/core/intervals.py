@@ -371,6 +371,13 @@ def warm_up() -> None:
                     1.0, 0.1, COARSE, z, sens, 0, 4)  # fmt: skip
 
 
+#: largest ``|d log(B_1 / B_0) / d log z|`` of a depth the intervals give.  Rigs give
+#: 0.4-1; where the dense pattern's ``du/dx`` (fixed by its interval, with the sign it has
+#: at a fixed depth) passes through 0 over the depth range, the predicted interval has a
+#: pole, and the residual jumps through 0 there (10-50): on tuning rigs 9 and 10 the only
+#: sign change of boards at 0.61 m (whose residual there just touched 0) was such a pole
+#: at 0.36 m
+MAX_SENSITIVITY = 5.0
 #: :meth:`IntervalModel.depth` looks for the depth on every SCAN-th depth of the
 #: tables first, then between the two that bracket it (the residual is smooth in 1/z)
 SCAN = 3
@@ -448,9 +455,11 @@ def _interval_depth(intervals, where, a, c, pitch, inv_z0, inv_z_step, coarse, z
                     break
                 lo = k
                 r_lo = r
-            f = r_lo / (r_lo - r_hi)
-            iz = inv_z0 + (lo + f) * inv_z_step
-            z_out[i, j] = 1.0 / iz
             # the tables are uniform in 1/z: log z changes by log(iz_k / iz_k+1) per step
             dlogz = math.log((inv_z0 + lo * inv_z_step) / (inv_z0 + (lo + 1) * inv_z_step))
-            sens_out[i, j] = abs((r_hi - r_lo) / dlogz)
+            sens = abs((r_hi - r_lo) / dlogz)
+            if sens > MAX_SENSITIVITY:
+                continue  # a pole of the prediction (a fold), not a depth
+            f = r_lo / (r_lo - r_hi)
+            z_out[i, j] = 1.0 / (inv_z0 + (lo + f) * inv_z_step)
+            sens_out[i, j] = sens
