@@ -1051,7 +1051,8 @@ def _measure_flooded(image, weights, row_y, bands, counts, member, train_sweeps,
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _find_member_runs(bands, counts, member, min_bands, found):
     """Runs of at least ``min_bands`` neighbouring overlap-rejected bands of one train
-    (``member``): ``found[m] = (pattern, row, first, last, train)``; returns their number."""
+    (``member``), cut into pieces of ``min_bands`` to ``2 min_bands - 1`` bands:
+    ``found[m] = (pattern, row, first, last, train)``; returns their number."""
     m = 0
     for p in range(2):
         for r in range(counts.shape[1]):
@@ -1066,11 +1067,16 @@ def _find_member_runs(bands, counts, member, min_bands, found):
                 while (j + 1 < n and member[p, r, j + 1] == q
                        and bands[p, r, j + 1, F_VALID] == BAND_OVERLAP):  # fmt: skip
                     j += 1
-                if j - k + 1 >= min_bands and m < found.shape[0]:
+                # in pieces of min_bands (the last one takes the rest): the interval of a
+                # long run changes along it (perspective, lens distortion), a stretch's must
+                # not (as _find_tight_runs)
+                for first in range(k, j - min_bands + 2, min_bands):
+                    if m == found.shape[0]:
+                        break
                     found[m, 0] = p
                     found[m, 1] = r
-                    found[m, 2] = k
-                    found[m, 3] = j
+                    found[m, 2] = first
+                    found[m, 3] = first + min_bands - 1 if j - first >= 2 * min_bands - 1 else j
                     found[m, 4] = q
                     m += 1
                 k = j + 1
