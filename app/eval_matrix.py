@@ -150,9 +150,15 @@ class MatrixCase:
         return f"{self.rig_name}-{self.scene}-{self.exposure_s * 1e3:g}ms"
 
 
-def matrix_cases(crop: tuple[int, int] | None = (800, 600), tuning: bool = False):
-    """Every case of the matrix, rigs in order, scenes and exposures in :data:`CASES` order."""
-    seeds = TUNING_SEEDS if tuning else REPORT_SEEDS
+def matrix_cases(crop: tuple[int, int] | None = (800, 600), tuning: bool = False,
+                 seeds: tuple[int, ...] = ()):  # fmt: skip
+    """Every case of the matrix, rigs in order, scenes and exposures in :data:`CASES` order.
+
+    ``seeds``: generate the two-projector rigs from these seeds instead (the last one
+    distorted), e.g. fresh rigs that nobody has looked at; default the reported ones
+    (:data:`REPORT_SEEDS`) or, with ``tuning``, :data:`TUNING_SEEDS`.
+    """
+    seeds = tuple(seeds) or (TUNING_SEEDS if tuning else REPORT_SEEDS)
     rigs = []
     for i, seed in enumerate(seeds):
         distorted = i == len(seeds) - 1
@@ -241,7 +247,7 @@ def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple,
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
                progress=None, log=print, stages: bool = False,
                blur_calibration: bool = True, only: tuple[str, ...] = (),
-               pictures: Path | None = None) -> list:
+               pictures: Path | None = None, seeds: tuple[int, ...] = ()) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
 
     ``only``: shell patterns (``fnmatch``) of case names; when given, just the
@@ -259,7 +265,7 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
     from lightflow.app.recording import read_recording, recording_frames
 
     results = []
-    cases = list(matrix_cases(crop, tuning))
+    cases = list(matrix_cases(crop, tuning, seeds))
     for pattern in only:
         if not any(fnmatchcase(c.name, pattern) for c in cases):
             raise ConfigError(f"--case {pattern!r}: no case of the matrix matches "

@@ -309,3 +309,20 @@ def test_eval_pictures_folder_that_cannot_be_made_is_one_line(recordings, tmp_pa
     err = capsys.readouterr().err
     assert err.startswith(f"lightflow: error: --pictures {blocked / 'pics'}: cannot create")
     assert err.count("\n") == 1
+
+
+def test_matrix_on_fresh_seeds(tmp_path, capsys):
+    """`--seeds` draws the two-projector rigs from other seeds (the last one distorted);
+    a malformed list, or one given with --tuning-rigs, is one line and exit status 2."""
+    from lightflow.app.commands.eval import _seed_list
+    from lightflow.app.eval_matrix import matrix_cases
+
+    assert _seed_list("7-9,12") == (7, 8, 9, 12)
+    names = {c.rig_name for c in matrix_cases(seeds=(7, 8))}
+    assert {"gen7", "gen8-distorted", "single-projector"} <= names
+    assert not any(n.startswith("gen2026") for n in names)
+    for bad in (["--seeds", "9-7"], ["--seeds", "x"], ["--seeds", "3", "--tuning-rigs"]):
+        assert cli_main(["eval", "--matrix", str(tmp_path / "m"), *bad]) == 2, bad
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("lightflow: error: --seeds"), err
+    assert not list((tmp_path / "m").glob("gen*"))  # nothing rendered
