@@ -271,28 +271,50 @@ def _fill_rows(flat, rows, kernel, min_level, out, i0, i1):
     r = kernel.shape[0] // 2
     lo = max(0, int(sub[0]) - 2 * r)
     hi = min(h, int(sub[-1]) + 2 * r + 1)
-    part = flat[sub]
-    closed = np.empty_like(part)
-    _erode_rows(cv2.dilate(flat[lo:hi], kernel), sub - lo, r, closed, 0, len(sub))
-    out[sub] = cv2.copyTo(closed, _deep_dips(closed, part, min_level), part)
+    # OpenCV's maximum with a float scalar rounds it to the image's type, half to even
+    level = int(np.clip(np.rint(min_level), 0, np.iinfo(flat.dtype).max))
+    _close_rows(cv2.dilate(flat[lo:hi], kernel), lo, flat, sub, r, level, out)
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _erode_rows(dilated, rows, r, out, i0, i1):
-    """``out[i]``: the minimum of ``dilated`` over rows ``rows[i] - r .. rows[i] + r``
-    (clipped to the image, as OpenCV's erosion ignores what lies outside); ``i0 .. i1`` only.
+def _close_rows(dilated, lo, flat, rows, r, level, out):
+    """``out[y]`` for each image row ``y`` in ``rows``: ``flat[y]`` with its deep dips
+    replaced by the closing, as :func:`_deep_dips` selects them.
+
+    ``dilated`` holds the vertical dilation of the image rows from ``lo`` on; the
+    erosion takes the minimum over its rows ``y - r .. y + r`` (clipped to it, as
+    OpenCV's erosion ignores what lies outside).  One pass per row does what
+    :func:`_deep_dips` and ``cv2.copyTo`` do in six over the rows (the same integers:
+    a dip deeper than its closing's eighth, rounded half to even as ``cv2.addWeighted``
+    rounds it, and than ``level``; widened by 5 values on each side).
     """
     h = dilated.shape[0]
-    for i in range(i0, i1):
+    w = flat.shape[1]
+    closed = np.empty(w, flat.dtype)
+    # deep dips, 5 values of padding on each side: the widening's window is clipped
+    deep = np.zeros(w + 10, np.uint8)
+    for i in range(rows.shape[0]):
         y = rows[i]
-        o = out[i]
-        first = dilated[max(0, y - r)]
-        for j in range(o.shape[0]):  # a loop: see sliding_mid
-            o[j] = first[j]
-        for yy in range(max(0, y - r) + 1, min(h - 1, y + r) + 1):
+        yd = y - lo
+        first = dilated[max(0, yd - r)]
+        for j in range(w):  # a loop: see sliding_mid
+            closed[j] = first[j]
+        for yy in range(max(0, yd - r) + 1, min(h - 1, yd + r) + 1):
             src = dilated[yy]
-            for j in range(o.shape[0]):
-                o[j] = min(o[j], src[j])
+            for j in range(w):
+                closed[j] = min(closed[j], src[j])
+        row = flat[y]
+        for j in range(w):
+            c = np.int32(closed[j])
+            q = c >> 3
+            rem = c & 7
+            eighth = q + np.int32(rem > 4 or (rem == 4 and (q & 1) == 1))
+            deep[j + 5] = c - np.int32(row[j]) > max(eighth, level)
+        o = out[y]
+        for j in range(w):
+            near = (deep[j] | deep[j + 1] | deep[j + 2] | deep[j + 3] | deep[j + 4] | deep[j + 5]
+                    | deep[j + 6] | deep[j + 7] | deep[j + 8] | deep[j + 9] | deep[j + 10])
+            o[j] = closed[j] if near else row[j]
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
