@@ -781,22 +781,27 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
     n = x.shape[0]
     max_b = out.shape[0]
-    # segments above the sliding mid-level
+    # segments above the sliding mid-level: first where the row crosses the level, in
+    # a pass without branches (a loop that branched on every sample would mispredict at
+    # every crossing, and noise crosses often), then the runs between the crossings
     seg = np.empty((2, max_b + 1), np.int64)
     seg_a = seg[0]
     seg_b = seg[1]
     lev = thr[0]
+    cross = np.empty(n + 1, np.int64)
+    m = 0
+    above = False
+    for j in range(n):
+        up = x[j] > lev[j]
+        cross[m] = j
+        m += up != above
+        above = up
+    cross[m] = n
+    m += above  # a run up to the row's end ends there
     ns = 0
-    j = 0
-    while j < n and ns < max_b + 1:
-        while j < n and not x[j] > lev[j]:
-            j += 1
-        if j == n:
-            break
-        a = j
-        while j < n and x[j] > lev[j]:
-            j += 1
-        b = j - 1
+    for t in range(0, m, 2):
+        a = cross[t]
+        b = cross[t + 1] - 1
         # noise on a low ramp can dip below the level for a sample or two:
         # such a split is one band, and a lone sample above it no band
         if ns > 0 and a - seg_b[ns - 1] - 1 <= 2:
@@ -805,6 +810,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             seg_a[ns] = a
             seg_b[ns] = b
             ns += 1
+            if ns == max_b + 1:
+                break
     ns = min(ns, max_b)
     # one scratch array for the per-gap and per-band values below (an allocation per
     # row costs as much as a pass over a few of its gaps)
