@@ -273,7 +273,7 @@ def _fill_rows(flat, rows, kernel, min_level, out, i0, i1):
     hi = min(h, int(sub[-1]) + 2 * r + 1)
     # OpenCV's maximum with a float scalar rounds it to the image's type, half to even
     level = int(np.clip(np.rint(min_level), 0, np.iinfo(flat.dtype).max))
-    _close_rows(cv2.dilate(flat[lo:hi], kernel), lo, flat, sub, r, level, out)
+    _close_rows(cv2.dilate(flat[lo:hi], kernel), lo, flat, sub, r, np.int32(level), out)
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
@@ -291,8 +291,10 @@ def _close_rows(dilated, lo, flat, rows, r, level, out):
     h = dilated.shape[0]
     w = flat.shape[1]
     closed = np.empty(w, flat.dtype)
-    # deep dips, 5 values of padding on each side: the widening's window is clipped
-    deep = np.zeros(w + 10, np.uint8)
+    # deep dips (every bit set: a mask to select with), 5 values of padding on each side:
+    # the widening's window is clipped
+    deep = np.zeros(w + 10, flat.dtype)
+    ones = ~flat.dtype.type(0)
     for i in range(rows.shape[0]):
         y = rows[i]
         yd = y - lo
@@ -306,15 +308,16 @@ def _close_rows(dilated, lo, flat, rows, r, level, out):
         row = flat[y]
         for j in range(w):
             c = np.int32(closed[j])
-            q = c >> 3
-            rem = c & 7
-            eighth = q + np.int32(rem > 4 or (rem == 4 and (q & 1) == 1))
-            deep[j + 5] = c - np.int32(row[j]) > max(eighth, level)
+            # c / 8 rounded half to even: 3 and the parity of c // 8 added push it over the
+            # next multiple of 8 from c // 8 + 5/8 on, and at c // 8 + 1/2 when c // 8 is odd
+            eighth = (c + np.int32(3) + ((c >> np.int32(3)) & np.int32(1))) >> np.int32(3)
+            deep[j + 5] = ones if c - np.int32(row[j]) > max(eighth, level) else 0
         o = out[y]
         for j in range(w):
             near = (deep[j] | deep[j + 1] | deep[j + 2] | deep[j + 3] | deep[j + 4] | deep[j + 5]
                     | deep[j + 6] | deep[j + 7] | deep[j + 8] | deep[j + 9] | deep[j + 10])
-            o[j] = closed[j] if near else row[j]
+            # a select by bit masks: a conditional here keeps the loop from vectorising
+            o[j] = (closed[j] & near) | (row[j] & (near ^ ones))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
