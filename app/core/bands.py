@@ -1326,7 +1326,7 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
         j = b + 1 + int(reach * maps[interval_field, i, b] / stride) + 1
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     """Interpolate the band fields of measured row ``r`` onto the grid columns.
 
@@ -1351,14 +1351,18 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
             if 0.0 < c1 - c0 <= 1.6 * max(bands[r, prev, F_INTERVAL], bands[r, k, F_INTERVAL]):
                 j0 = max(int(np.ceil((c0 - off) / stride)), 0)
                 j1 = min(int(np.floor((c1 - off) / stride)), gw - 1)
-                # positions first, then one field at a time: loops without reloads
-                for j in range(j0, j1 + 1):
-                    t[j] = (j * stride + off - c0) / (c1 - c0)
+                # positions first, then one field at a time: loops without reloads, counted
+                # from 0 on views, so that the compiler knows no index is negative (one
+                # that might be is wrapped around, and the loop stores one value at a time)
+                m = j1 + 1 - j0
+                for q in range(m):
+                    t[q] = ((j0 + q) * stride + off - c0) / (c1 - c0)
                 for f in range(nf):
                     v0 = bands[r, prev, fields[f]]
                     dv = bands[r, k, fields[f]] - v0
-                    for j in range(j0, j1 + 1):
-                        maps[f, i, j] = v0 + t[j] * dv
+                    run = maps[f, i, j0 : j1 + 1]
+                    for q in range(m):
+                        run[q] = v0 + t[q] * dv
         # a band without partner still marks its own grid sample
         c = bands[r, k, F_CENTRE]
         jc = int(np.floor((c - off) / stride + 0.5))
