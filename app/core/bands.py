@@ -366,29 +366,35 @@ def sliding_mid(x, win, out):
 
     Only a segmentation level is needed, so it is computed on blocks of
     ``win // 8`` samples (block maxima and minima, then a sliding window over
-    blocks), which costs one pass over the row.  The loops run across blocks
-    (one offset at a time) rather than along one block, so that neighbouring
-    maxima do not wait on each other: a running maximum is a chain of
-    dependent instructions.
+    blocks), which costs one pass over the row.
+    """
+    q = max(1, win // 8)
+    _sliding_mid(x, win, out, np.empty((4, (x.shape[0] + q - 1) // q)))
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
+def _sliding_mid(x, win, out, s):
+    """:func:`sliding_mid` with scratch ``s`` (4 rows of a value per block).
+
+    Every loop runs over a view from its start, so that the compiler knows that no
+    index is negative (numba wraps a negative index around: a select per value, and
+    loops that store one value at a time); compiled without reference counting
+    (``_nrt=False``: the views would count on ``x`` and ``out``).
     """
     n = x.shape[0]
     q = max(1, win // 8)
     nb_ = (n + q - 1) // q
-    full = n // q  # blocks without the short last one
     r = max(1, (win // q) // 2)
-    s = np.empty((4, nb_))
     bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
     for b in range(nb_):
-        bmax[b] = x[b * q]
-        bmin[b] = x[b * q]
-    for t in range(1, q):
-        for b in range(full):
-            v = x[b * q + t]
-            bmax[b] = max(bmax[b], v)
-            bmin[b] = min(bmin[b], v)
-    for j in range(full * q + 1, n):
-        bmax[full] = max(bmax[full], x[j])
-        bmin[full] = min(bmin[full], x[j])
+        block = x[b * q : min(n, b * q + q)]
+        hi = block[0]
+        lo = block[0]
+        for t in range(1, block.shape[0]):
+            hi = max(hi, block[t])
+            lo = min(lo, block[t])
+        bmax[b] = hi
+        bmin[b] = lo
     # loops, not wmax[:] = bmax: a slice assignment makes numba compile its
     # shape-mismatch message (1.5 s of a cold start's CPU)
     for b in range(nb_):
@@ -398,15 +404,20 @@ def sliding_mid(x, win, out):
         for b in range(nb_ - c):
             wmax[b] = max(wmax[b], bmax[b + c])
             wmin[b] = min(wmin[b], bmin[b + c])
-        for b in range(c, nb_):
-            wmax[b] = max(wmax[b], bmax[b - c])
-            wmin[b] = min(wmin[b], bmin[b - c])
+        # blocks c on: the block c before each
+        wmax_c = wmax[c:]
+        wmin_c = wmin[c:]
+        for b in range(wmax_c.shape[0]):
+            wmax_c[b] = max(wmax_c[b], bmax[b])
+            wmin_c[b] = min(wmin_c[b], bmin[b])
     for b in range(nb_):
         mid = 0.5 * (wmax[b] + wmin[b])
         mn = wmin[b]
-        for j in range(b * q, min(n, b * q + q)):
-            out[0, j] = mid
-            out[1, j] = mn
+        mids = out[0, b * q : min(n, b * q + q)]
+        mins = out[1, b * q : min(n, b * q + q)]
+        for t in range(mids.shape[0]):
+            mids[t] = mid
+            mins[t] = mn
 
 
 @nb.njit(cache=True, error_model="numpy")
