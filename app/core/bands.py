@@ -366,25 +366,16 @@ def sliding_mid(x, win, out):
 
     Only a segmentation level is needed, so it is computed on blocks of
     ``win // 8`` samples (block maxima and minima, then a sliding window over
-    blocks), which costs one pass over the row.
-    """
-    q = max(1, win // 8)
-    _sliding_mid(x, win, out, np.empty((4, (x.shape[0] + q - 1) // q)))
-
-
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _sliding_mid(x, win, out, s):
-    """:func:`sliding_mid` with scratch ``s`` (4 rows of a value per block).
-
-    Every loop runs over a view from its start, so that the compiler knows that no
-    index is negative (numba wraps a negative index around: a select per value, and
-    loops that store one value at a time); compiled without reference counting
-    (``_nrt=False``: the views would count on ``x`` and ``out``).
+    blocks), which costs one pass over the row.  Every loop runs over a view from
+    its start, so that the compiler knows that no index is negative (numba wraps a
+    negative index around: a select per value, and loops that store one value at a
+    time).
     """
     n = x.shape[0]
     q = max(1, win // 8)
     nb_ = (n + q - 1) // q
     r = max(1, (win // q) // 2)
+    s = np.empty((4, nb_))
     bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
     for b in range(nb_):
         block = x[b * q : min(n, b * q + q)]
@@ -622,16 +613,19 @@ _N_SHAPE = 10
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, again, out, shape):
+def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
     """Measure the shape of band ``k`` (samples ``a..b`` above the mid-level) of row ``x``
     into ``out[k]``: centre, length, half-height crossings, height and ramp.
 
     ``bl``/``br`` are the background levels of the gaps on its left and right,
     centred at ``cl``/``cr``, less the neighbours' tails in them (:func:`_tails`).
-    ``again``: ``shape[:, k]`` holds a first measurement of the same band, on a higher
-    background (its maximum and its first walk start this one).  :func:`_band_checks`
-    then says whether the band is valid.  Returns False, with ``F_VALID`` at
-    ``BAND_FAINT`` and the other fields NaN, when the band cannot be measured.
+    ``shape[:, k]`` holds a first measurement of the same band when its ``_S_PEAK_AT``
+    is not negative (the caller sets it to -1, and ``_S_LEVEL1`` to -inf, before the
+    first): a second one, on a lower background, starts from its maximum and its first
+    walk (a flag argument instead would compile this twice, once per literal value).
+    :func:`_band_checks` then says whether the band is valid.  Returns False, with
+    ``F_VALID`` at ``BAND_FAINT`` and the other fields NaN, when the band cannot be
+    measured.
 
     Compiled without reference counting (``_nrt=False``): it allocates nothing, and the
     counts on its arrays cost a tenth of the detector's time, several times per band.
@@ -642,7 +636,7 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, again, out, shape):
     out[k, F_END] = b
     shape[_S_DONE, k] = 0.0
     # first pass: half of the maximum
-    if again:
+    if shape[_S_PEAK_AT, k] >= 0.0:
         jm = int(shape[_S_PEAK_AT, k])
         top = shape[_S_TOP, k]
     else:
@@ -662,7 +656,7 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, again, out, shape):
     level1 = bg + 0.5 * (top - bg)
     # a walk to a lower level passes where the walk to a higher one ended
     # (every sample from there to the peak is above both): it starts there
-    if again and level1 <= shape[_S_LEVEL1, k]:
+    if level1 <= shape[_S_LEVEL1, k]:
         sl = _walk_left(x, int(shape[_S_LEFT1, k]), level1)
         sr = _walk_right(x, int(shape[_S_RIGHT1, k]), level1)
     else:
@@ -843,6 +837,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         used_l[g] = 0.0
         used_r[g] = 0.0
         shape[_S_DONE, g] = 0.0
+        shape[_S_PEAK_AT, g] = -1.0  # not measured yet
+        shape[_S_LEVEL1, g] = -np.inf
     for k in range(ns):
         for f in range(N_FIELDS):
             out[k, f] = np.nan
@@ -868,7 +864,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gap_lv[k + 1], gap_dp[k + 1] = _gap_level(x, gr0, gr1)
         gap_done[k + 1] = 1.0
         _band_shape(x, k, a, b, gap_lv[k], gap_lv[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1),
-                    min_contrast, False, out, shape)  # fmt: skip
+                    min_contrast, out, shape)  # fmt: skip
     # A narrow gap never reaches the background: the tails of the bands on both sides
     # raise its level, and the half-height crossings of both bands move inwards (by about
     # the raise times the line width: 1-2 % of a sweep of two thirds of the interval).
@@ -904,7 +900,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
             gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
             _band_shape(x, k, seg_a[k], seg_b[k], gap_lv[k] - tl, gap_lv[k + 1] - tr,
-                        0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), min_contrast, True, out,
+                        0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), min_contrast, out,
                         shape)  # fmt: skip
     # the checks, once per band, on its last measurement
     for k in range(ns):
