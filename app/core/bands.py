@@ -1228,9 +1228,9 @@ def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, grou
     w = img.shape[1]
     n_p = weights.shape[0]
     v = int(params[4])
+    x = np.empty((n_p, w))
+    thr = np.empty((n_p, 2, w))
     for g in range(g0, g1):
-        x = np.empty((n_p, w))
-        thr = np.empty((n_p, 2, w))
         for q in range(group):
             i = g * group + q
             _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
