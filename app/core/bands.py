@@ -283,8 +283,8 @@ def _close_rows(dilated, lo, flat, rows, r, level, out):
 
     ``dilated`` holds the vertical dilation of the image rows from ``lo`` on; the
     erosion takes the minimum over its rows ``y - r .. y + r`` (clipped to it, as
-    OpenCV's erosion ignores what lies outside).  One pass per row does what
-    :func:`_deep_dips` and ``cv2.copyTo`` do in six over the rows (the same integers:
+    OpenCV's erosion ignores what lies outside).  Three loops along each row do what
+    :func:`_deep_dips` and ``cv2.copyTo`` do in six passes over all rows (the same integers:
     a dip deeper than its closing's eighth, rounded half to even as ``cv2.addWeighted``
     rounds it, and than ``level``; widened by 5 values on each side).
     """
@@ -482,6 +482,9 @@ def row_signals(img: np.ndarray, y: int, weights: np.ndarray) -> np.ndarray:
     return out
 
 
+# The per-gap and per-band kernels of the detector allocate nothing: they are compiled
+# without numba's reference counting (``_nrt=False``), whose atomic counts on the row's and
+# the bands' arrays at every call cost about a tenth of the detector's time.
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _gap_level(x, g0, g1):
     """Background of a gap (mean of its middle half) and how V-shaped that middle is.
@@ -626,9 +629,6 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
     :func:`_band_checks` then says whether the band is valid.  Returns False, with
     ``F_VALID`` at ``BAND_FAINT`` and the other fields NaN, when the band cannot be
     measured.
-
-    Compiled without reference counting (``_nrt=False``): it allocates nothing, and the
-    counts on its arrays cost a tenth of the detector's time, several times per band.
     """
     for f in range(N_FIELDS):
         out[k, f] = np.nan
@@ -1341,6 +1341,8 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     interval).  Values are interpolated linearly between neighbouring valid bands
     at most 1.6 intervals apart and extrapolated linearly ``reach`` intervals
     beyond the ends of each run; elsewhere NaN.  ``t``: scratch of ``gw`` values.
+    Compiled without reference counting (``_nrt=False``): its views of ``maps`` would
+    count on the grids that both threads write.
     """
     nf = fields.shape[0]
     off = 0.5 * (stride - 1)
