@@ -571,6 +571,35 @@ def test_fill_print_on_some_rows_fills_them_as_the_whole_image_does():
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("min_dip", [6.5, 7.5, 12.0])
+def test_fill_print_on_some_rows_rounds_as_opencv_does(dtype, min_dip):
+    """The rows' one-pass kernel against OpenCV's closing of the whole image, in 8 and 16
+    bits, where the shallowest dip filled is halfway between two integers (rounded half to
+    even, as OpenCV rounds a scalar) and where the eighths of the closing tie."""
+    rng = np.random.default_rng(7)
+    printed = _upright_band_image(rng, noise=3.0).astype(dtype)
+    if dtype == np.uint16:
+        printed = printed * np.uint16(16) + rng.integers(0, 16, printed.shape, dtype=np.uint16)
+    printed[10:14, 50:53] //= 6
+    printed[30:33, 80:90] //= 3
+    whole = fill_print(printed, 13, min_dip=min_dip)
+    rows = np.arange(printed.shape[0])
+    assert np.array_equal(fill_print(printed, 13, min_dip=min_dip, rows=rows), whole)
+    assert not np.array_equal(whole, printed)
+    # an eighth of the closing halfway between two integers: 100 / 8 rounds down to 12,
+    # 108 / 8 up to 14 (half to even), so a dip of 13 is filled on 100, one of 14 is not
+    # on 108, one of 15 is
+    flat = np.full((30, 12, 3), 100, dtype)
+    flat[:, 6:] = 108
+    flat[15, 1] -= 13
+    flat[15, 8] -= 14
+    flat[15, 10] -= 15
+    whole = fill_print(flat, 13, min_dip=1.0)
+    assert np.array_equal(fill_print(flat, 13, min_dip=1.0, rows=rows[:30]), whole)
+    assert whole[15, 1, 0] == 100 and whole[15, 8, 0] == 108 - 14 and whole[15, 10, 0] == 108
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 @pytest.mark.parametrize("n", [1, 2, 7, 1000, 1001])
 def test_median_from_a_histogram_equals_numpys(dtype, n):
     top = 200 if dtype == np.uint8 else 4000

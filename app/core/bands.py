@@ -271,28 +271,53 @@ def _fill_rows(flat, rows, kernel, min_level, out, i0, i1):
     r = kernel.shape[0] // 2
     lo = max(0, int(sub[0]) - 2 * r)
     hi = min(h, int(sub[-1]) + 2 * r + 1)
-    part = flat[sub]
-    closed = np.empty_like(part)
-    _erode_rows(cv2.dilate(flat[lo:hi], kernel), sub - lo, r, closed, 0, len(sub))
-    out[sub] = cv2.copyTo(closed, _deep_dips(closed, part, min_level), part)
+    # OpenCV's maximum with a float scalar rounds it to the image's type, half to even
+    level = int(np.clip(np.rint(min_level), 0, np.iinfo(flat.dtype).max))
+    _close_rows(cv2.dilate(flat[lo:hi], kernel), lo, flat, sub, r, np.int32(level), out)
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _erode_rows(dilated, rows, r, out, i0, i1):
-    """``out[i]``: the minimum of ``dilated`` over rows ``rows[i] - r .. rows[i] + r``
-    (clipped to the image, as OpenCV's erosion ignores what lies outside); ``i0 .. i1`` only.
+def _close_rows(dilated, lo, flat, rows, r, level, out):
+    """``out[y]`` for each image row ``y`` in ``rows``: ``flat[y]`` with its deep dips
+    replaced by the closing, as :func:`_deep_dips` selects them.
+
+    ``dilated`` holds the vertical dilation of the image rows from ``lo`` on; the
+    erosion takes the minimum over its rows ``y - r .. y + r`` (clipped to it, as
+    OpenCV's erosion ignores what lies outside).  Three loops along each row do what
+    :func:`_deep_dips` and ``cv2.copyTo`` do in six passes over all rows (the same integers:
+    a dip deeper than its closing's eighth, rounded half to even as ``cv2.addWeighted``
+    rounds it, and than ``level``; widened by 5 values on each side).
     """
     h = dilated.shape[0]
-    for i in range(i0, i1):
+    w = flat.shape[1]
+    closed = np.empty(w, flat.dtype)
+    # deep dips (every bit set: a mask to select with), 5 values of padding on each side:
+    # the widening's window is clipped
+    deep = np.zeros(w + 10, flat.dtype)
+    ones = ~flat.dtype.type(0)
+    for i in range(rows.shape[0]):
         y = rows[i]
-        o = out[i]
-        first = dilated[max(0, y - r)]
-        for j in range(o.shape[0]):  # a loop: see sliding_mid
-            o[j] = first[j]
-        for yy in range(max(0, y - r) + 1, min(h - 1, y + r) + 1):
+        yd = y - lo
+        first = dilated[max(0, yd - r)]
+        for j in range(w):  # a loop: see sliding_mid
+            closed[j] = first[j]
+        for yy in range(max(0, yd - r) + 1, min(h - 1, yd + r) + 1):
             src = dilated[yy]
-            for j in range(o.shape[0]):
-                o[j] = min(o[j], src[j])
+            for j in range(w):
+                closed[j] = min(closed[j], src[j])
+        row = flat[y]
+        for j in range(w):
+            c = np.int32(closed[j])
+            # c / 8 rounded half to even: 3 and the parity of c // 8 added push it over the
+            # next multiple of 8 from c // 8 + 5/8 on, and at c // 8 + 1/2 when c // 8 is odd
+            eighth = (c + np.int32(3) + ((c >> np.int32(3)) & np.int32(1))) >> np.int32(3)
+            deep[j + 5] = ones if c - np.int32(row[j]) > max(eighth, level) else 0
+        o = out[y]
+        for j in range(w):
+            near = (deep[j] | deep[j + 1] | deep[j + 2] | deep[j + 3] | deep[j + 4] | deep[j + 5]
+                    | deep[j + 6] | deep[j + 7] | deep[j + 8] | deep[j + 9] | deep[j + 10])
+            # a select by bit masks: a conditional here keeps the loop from vectorising
+            o[j] = (closed[j] & near) | (row[j] & (near ^ ones))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -341,29 +366,26 @@ def sliding_mid(x, win, out):
 
     Only a segmentation level is needed, so it is computed on blocks of
     ``win // 8`` samples (block maxima and minima, then a sliding window over
-    blocks), which costs one pass over the row.  The loops run across blocks
-    (one offset at a time) rather than along one block, so that neighbouring
-    maxima do not wait on each other: a running maximum is a chain of
-    dependent instructions.
+    blocks), which costs one pass over the row.  Every loop runs over a view from
+    its start, so that the compiler knows that no index is negative (numba wraps a
+    negative index around: a select per value, and loops that store one value at a
+    time).
     """
     n = x.shape[0]
     q = max(1, win // 8)
     nb_ = (n + q - 1) // q
-    full = n // q  # blocks without the short last one
     r = max(1, (win // q) // 2)
     s = np.empty((4, nb_))
     bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
     for b in range(nb_):
-        bmax[b] = x[b * q]
-        bmin[b] = x[b * q]
-    for t in range(1, q):
-        for b in range(full):
-            v = x[b * q + t]
-            bmax[b] = max(bmax[b], v)
-            bmin[b] = min(bmin[b], v)
-    for j in range(full * q + 1, n):
-        bmax[full] = max(bmax[full], x[j])
-        bmin[full] = min(bmin[full], x[j])
+        block = x[b * q : min(n, b * q + q)]
+        hi = block[0]
+        lo = block[0]
+        for t in range(1, block.shape[0]):
+            hi = max(hi, block[t])
+            lo = min(lo, block[t])
+        bmax[b] = hi
+        bmin[b] = lo
     # loops, not wmax[:] = bmax: a slice assignment makes numba compile its
     # shape-mismatch message (1.5 s of a cold start's CPU)
     for b in range(nb_):
@@ -373,15 +395,20 @@ def sliding_mid(x, win, out):
         for b in range(nb_ - c):
             wmax[b] = max(wmax[b], bmax[b + c])
             wmin[b] = min(wmin[b], bmin[b + c])
-        for b in range(c, nb_):
-            wmax[b] = max(wmax[b], bmax[b - c])
-            wmin[b] = min(wmin[b], bmin[b - c])
+        # blocks c on: the block c before each
+        wmax_c = wmax[c:]
+        wmin_c = wmin[c:]
+        for b in range(wmax_c.shape[0]):
+            wmax_c[b] = max(wmax_c[b], bmax[b])
+            wmin_c[b] = min(wmin_c[b], bmin[b])
     for b in range(nb_):
         mid = 0.5 * (wmax[b] + wmin[b])
         mn = wmin[b]
-        for j in range(b * q, min(n, b * q + q)):
-            out[0, j] = mid
-            out[1, j] = mn
+        mids = out[0, b * q : min(n, b * q + q)]
+        mins = out[1, b * q : min(n, b * q + q)]
+        for t in range(mids.shape[0]):
+            mids[t] = mid
+            mins[t] = mn
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -455,7 +482,10 @@ def row_signals(img: np.ndarray, y: int, weights: np.ndarray) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True, error_model="numpy")
+# The per-gap and per-band kernels of the detector allocate nothing: they are compiled
+# without numba's reference counting (``_nrt=False``), whose atomic counts on the row's and
+# the bands' arrays at every call cost about a tenth of the detector's time.
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _gap_level(x, g0, g1):
     """Background of a gap (mean of its middle half) and how V-shaped that middle is.
 
@@ -483,7 +513,7 @@ def _gap_level(x, g0, g1):
     return level, outer / (2 * t) - inner / (b - t - (a + t) + 1)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _near_level(x, edge, bound):
     """Mean of the three samples from ``edge`` outwards, none beyond sample ``bound``.
 
@@ -502,7 +532,7 @@ def _near_level(x, edge, bound):
     return total / 3.0
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _gap_floor(x, g0, g1):
     """Lowest mean of five neighbouring samples in gap ``g0..g1`` (its mean if shorter).
 
@@ -554,63 +584,91 @@ def _edge_sum(h, e, sigma, lo, hi, sign):
     return integral - slope * (math.exp(-u_hi * u_hi) - math.exp(-u_lo * u_lo)) / 24.0
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _tails(g0, g1, edges, left, right):
     """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
     of band ``left``'s right edge and band ``right``'s left edge.
 
-    Each edge is an erf of its band's height and edge sigma (rows of ``edges``:
-    height, left and right half-height points, edge sigma; NaN or out of range:
-    none), summed over the samples by :func:`_edge_sum`.
+    Each edge is an erf of its band's height and edge sigma (columns of ``edges``, one
+    per band; its rows: height, left and right half-height points, edge sigma; NaN or
+    out of range: none), summed over the samples by :func:`_edge_sum`.
     """
     q = (g1 - g0 + 1) // 4
     lo = g0 + q - 0.5
     hi = g1 - q + 0.5
     if hi <= lo:
         return 0.0
-    n_e = edges.shape[0]
+    n_e = edges.shape[1]
     total = 0.0
-    if 0 <= left < n_e and edges[left, 0] > 0.0 and edges[left, 3] > 0.0:
-        total += _edge_sum(edges[left, 0], edges[left, 2], edges[left, 3], lo, hi, 1.0)
-    if 0 <= right < n_e and edges[right, 0] > 0.0 and edges[right, 3] > 0.0:
-        total += _edge_sum(edges[right, 0], edges[right, 1], edges[right, 3], lo, hi, -1.0)
+    if 0 <= left < n_e and edges[0, left] > 0.0 and edges[3, left] > 0.0:
+        total += _edge_sum(edges[0, left], edges[2, left], edges[3, left], lo, hi, 1.0)
+    if 0 <= right < n_e and edges[0, right] > 0.0 and edges[3, right] > 0.0:
+        total += _edge_sum(edges[0, right], edges[1, right], edges[3, right], lo, hi, -1.0)
     return total / (hi - lo)
 
 
-@nb.njit(cache=True, error_model="numpy")
-def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast, sym_tol, out):
-    """Measure band ``k`` (samples ``a..b`` above the mid-level) of row ``x`` into ``out[k]``.
+#: rows of the per-band scratch that :func:`_band_shape` fills (one column per band): where
+#: and how high the band's maximum is, the first walk's level and ends, the centre and
+#: background it measured the band at, its 20 % crossings, and 1 once it is measured
+_S_PEAK_AT, _S_TOP, _S_LEVEL1, _S_LEFT1, _S_RIGHT1, _S_MID, _S_BG, _S_X20L, _S_X20R, _S_DONE = \
+    range(10)  # fmt: skip
+_N_SHAPE = 10
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
+def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
+    """Measure the shape of band ``k`` (samples ``a..b`` above the mid-level) of row ``x``
+    into ``out[k]``: centre, length, half-height crossings, height and ramp.
 
     ``bl``/``br`` are the background levels of the gaps on its left and right,
-    centred at ``cl``/``cr``, less the neighbours' tails ``tl``/``tr`` in them
-    (:func:`_tails`), and ``vl``/``vr`` how V-shaped they are
-    (:func:`_gap_level`).  Leaves ``F_VALID`` at a rejection code when the band
-    cannot be measured; then its other fields stay NaN.
+    centred at ``cl``/``cr``, less the neighbours' tails in them (:func:`_tails`).
+    ``shape[:, k]`` holds a first measurement of the same band when its ``_S_PEAK_AT``
+    is not negative (the caller sets it to -1, and ``_S_LEVEL1`` to -inf, before the
+    first): a second one, on a lower background, starts from its maximum and its first
+    walk (a flag argument instead would compile this twice, once per literal value).
+    :func:`_band_checks` then says whether the band is valid.  Returns False, with
+    ``F_VALID`` at ``BAND_FAINT`` and the other fields NaN, when the band cannot be
+    measured.
     """
-    n = x.shape[0]
     for f in range(N_FIELDS):
         out[k, f] = np.nan
     out[k, F_START] = a
     out[k, F_END] = b
+    shape[_S_DONE, k] = 0.0
     # first pass: half of the maximum
-    jm = a
-    top = x[a]
-    for i in range(a + 1, b + 1):
-        v = x[i]
-        if v > top:
-            top = v
-            jm = i
+    if shape[_S_PEAK_AT, k] >= 0.0:
+        jm = int(shape[_S_PEAK_AT, k])
+        top = shape[_S_TOP, k]
+    else:
+        jm = a
+        top = x[a]
+        for i in range(a + 1, b + 1):
+            v = x[i]
+            if v > top:
+                top = v
+                jm = i
+        shape[_S_PEAK_AT, k] = jm
+        shape[_S_TOP, k] = top
     bg = 0.5 * (bl + br)
     out[k, F_VALID] = BAND_FAINT  # until it is measured
     if top - bg < min_contrast:
-        return
+        return False
     level1 = bg + 0.5 * (top - bg)
-    sl = _walk_left(x, jm, level1)
-    sr = _walk_right(x, jm, level1)
+    # a walk to a lower level passes where the walk to a higher one ended
+    # (every sample from there to the peak is above both): it starts there
+    if level1 <= shape[_S_LEVEL1, k]:
+        sl = _walk_left(x, int(shape[_S_LEFT1, k]), level1)
+        sr = _walk_right(x, int(shape[_S_RIGHT1, k]), level1)
+    else:
+        sl = _walk_left(x, jm, level1)
+        sr = _walk_right(x, jm, level1)
+    shape[_S_LEVEL1, k] = level1
+    shape[_S_LEFT1, k] = sl
+    shape[_S_RIGHT1, k] = sr
     xl = _at_left(x, sl, level1)
     xr = _at_right(x, sr, level1)
     if xl < 0 or xr < 0:
-        return
+        return False
     # plateau: mean over the central half of the band (the max alone is biased by noise)
     # (the same definition as lightflow.app.core.profile_model.measure)
     l1 = xr - xl
@@ -628,22 +686,20 @@ def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast,
     bg = bl + (br - bl) * (mid - cl) / (cr - cl)
     height = peak - bg
     if height < min_contrast:
-        return
+        return False
     level = bg + 0.5 * height
-    # a walk to a lower level passes where the walk to a higher one ended
-    # (every sample from there to the peak is above both): it starts there
     wl = _walk_left(x, sl if level <= level1 else jm, level)
     wr = _walk_right(x, sr if level <= level1 else jm, level)
     xl = _at_left(x, wl, level)
     xr = _at_right(x, wr, level)
     if xl < 0 or xr < 0:
-        return
+        return False
     # ramps at 20 % height: symmetric for a band the surface carried whole
     level20 = bg + 0.2 * height
     x20l = _at_left(x, _walk_left(x, wl if level20 <= level else jm, level20), level20)
     x20r = _at_right(x, _walk_right(x, wr if level20 <= level else jm, level20), level20)
     if x20l < 0 or x20r < 0:
-        return
+        return False
     ramp_l = xl - x20l
     ramp_r = x20r - xr
     out[k, F_CENTRE] = 0.5 * (xl + xr)
@@ -652,7 +708,35 @@ def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast,
     out[k, F_END] = xr
     out[k, F_HEIGHT] = height
     out[k, F_RAMP] = 0.5 * (ramp_l + ramp_r)
-    # the first failed check names the reason (BAND_*)
+    shape[_S_MID, k] = mid
+    shape[_S_BG, k] = bg
+    shape[_S_X20L, k] = x20l
+    shape[_S_X20R, k] = x20r
+    shape[_S_DONE, k] = 1.0
+    return True
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
+def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, sym_tol, out, shape):
+    """Set ``F_VALID`` of band ``k``, measured by :func:`_band_shape`: valid, or the first
+    reason it is not (``BAND_*``).
+
+    ``tl``/``tr`` are the neighbours' tails subtracted from the backgrounds of the gaps
+    on its left and right (centred at ``cl``/``cr``; 0 where none were), ``vl``/``vr``
+    how V-shaped those gaps are (:func:`_gap_level`).  Sets ``F_INTERVAL`` to the
+    band's full ramp length for :func:`bands_in_row`, and ``F_CENTRE`` to NaN for a band
+    that may run into the image border.
+    """
+    n = x.shape[0]
+    xl = out[k, F_START]
+    xr = out[k, F_END]
+    height = out[k, F_HEIGHT]
+    mid = shape[_S_MID, k]
+    bg = shape[_S_BG, k]
+    x20l = shape[_S_X20L, k]
+    x20r = shape[_S_X20R, k]
+    ramp_l = xl - x20l
+    ramp_r = x20r - xr
     # equal ramps: a band cut by an edge has one sharp side
     code = BAND_VALID
     if abs(ramp_l - ramp_r) > sym_tol + 0.3 * max(ramp_l, ramp_r):
@@ -661,7 +745,7 @@ def _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, tl, tr, min_contrast,
     # and its level is well above the lowest level around
     # (as measured: tails that fill a gap this much are merged bands)
     raised = bg + tl + (tr - tl) * (mid - cl) / (cr - cl)
-    if code > 0 and raised - thr[1, jm] > 0.25 * height:
+    if code > 0 and raised - thr[1, int(shape[_S_PEAK_AT, k])] > 0.25 * height:
         code = BAND_OVERLAP
     # ... and a V-shaped gap (two ramps meeting) is lower in its middle than around
     if code > 0 and max(vl, vr) > 0.12 * height:
@@ -693,27 +777,39 @@ def _gap(seg_a, seg_b, ns, n, g):
     return g0, g1
 
 
+#: rows of :func:`bands_in_row`'s scratch (one column per gap or band) before the
+#: rows of :func:`_band_shape`'s
+(_W_GAP_LEVEL, _W_GAP_DIP, _W_GAP_DONE, _W_USED_LEFT, _W_USED_RIGHT, _W_TAILS, _W_LOW, _W_FLOOR,
+ _W_EDGES) = range(9)  # fmt: skip
+_N_WORK = _W_EDGES + 4
+
+
 @nb.njit(cache=True, error_model="numpy")
 def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
     n = x.shape[0]
     max_b = out.shape[0]
-    # segments above the sliding mid-level
+    # segments above the sliding mid-level: first where the row crosses the level, in
+    # a pass without branches (a loop that branched on every sample would mispredict at
+    # every crossing, and noise crosses often), then the runs between the crossings
     seg = np.empty((2, max_b + 1), np.int64)
     seg_a = seg[0]
     seg_b = seg[1]
     lev = thr[0]
+    cross = np.empty(n + 1, np.int64)
+    m = 0
+    above = False
+    for j in range(n):
+        up = x[j] > lev[j]
+        cross[m] = j
+        m += up != above
+        above = up
+    cross[m] = n
+    m += above  # a run up to the row's end ends there
     ns = 0
-    j = 0
-    while j < n and ns < max_b + 1:
-        while j < n and not x[j] > lev[j]:
-            j += 1
-        if j == n:
-            break
-        a = j
-        while j < n and x[j] > lev[j]:
-            j += 1
-        b = j - 1
+    for t in range(0, m, 2):
+        a = cross[t]
+        b = cross[t + 1] - 1
         # noise on a low ramp can dip below the level for a sample or two:
         # such a split is one band, and a lone sample above it no band
         if ns > 0 and a - seg_b[ns - 1] - 1 <= 2:
@@ -722,12 +818,27 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             seg_a[ns] = a
             seg_b[ns] = b
             ns += 1
+            if ns == max_b + 1:
+                break
     ns = min(ns, max_b)
-    gaps = np.empty((2, ns + 1))
-    gap_lv = gaps[0]
-    gap_dp = gaps[1]
-    gap_lv[:] = np.inf  # gaps next to no measured band stay unmeasured
-    gap_done = np.zeros(ns + 1, np.bool_)
+    # one scratch array for the per-gap and per-band values below (an allocation per
+    # row costs as much as a pass over a few of its gaps)
+    work = np.empty((_N_WORK + _N_SHAPE, ns + 1))
+    gap_lv = work[_W_GAP_LEVEL]
+    gap_dp = work[_W_GAP_DIP]
+    gap_done = work[_W_GAP_DONE]
+    # the neighbours' tails that a band's measurement subtracted on its left and right
+    used_l = work[_W_USED_LEFT]
+    used_r = work[_W_USED_RIGHT]
+    shape = work[_N_WORK:]
+    for g in range(ns + 1):
+        gap_lv[g] = np.inf  # gaps next to no measured band stay unmeasured
+        gap_done[g] = 0.0
+        used_l[g] = 0.0
+        used_r[g] = 0.0
+        shape[_S_DONE, g] = 0.0
+        shape[_S_PEAK_AT, g] = -1.0  # not measured yet
+        shape[_S_LEVEL1, g] = -np.inf
     for k in range(ns):
         for f in range(N_FIELDS):
             out[k, f] = np.nan
@@ -747,57 +858,64 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             out[k, F_VALID] = BAND_OVERLAP
             continue
         # each gap serves two bands: measure it once
-        if not gap_done[k]:
+        if gap_done[k] == 0.0:
             gap_lv[k], gap_dp[k] = _gap_level(x, gl0, gl1)
-            gap_done[k] = True
+            gap_done[k] = 1.0
         gap_lv[k + 1], gap_dp[k + 1] = _gap_level(x, gr0, gr1)
-        gap_done[k + 1] = True
-        bl, vl = gap_lv[k], gap_dp[k]
-        br, vr = gap_lv[k + 1], gap_dp[k + 1]
-        cl = 0.5 * (gl0 + gl1)
-        cr = 0.5 * (gr0 + gr1)
-        _measure_band(x, thr, k, a, b, bl, br, vl, vr, cl, cr, 0.0, 0.0, min_contrast, sym_tol,
-                      out)  # fmt: skip
+        gap_done[k + 1] = 1.0
+        _band_shape(x, k, a, b, gap_lv[k], gap_lv[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1),
+                    min_contrast, out, shape)  # fmt: skip
     # A narrow gap never reaches the background: the tails of the bands on both sides
     # raise its level, and the half-height crossings of both bands move inwards (by about
     # the raise times the line width: 1-2 % of a sweep of two thirds of the interval).
     # Subtract the tails, modelled as an erf edge with each band's own ramp, and measure
     # again.  Isolated bands are untouched.
-    tails = np.zeros(ns + 1)
+    tails = work[_W_TAILS]
+    for g in range(ns + 1):
+        tails[g] = 0.0
     if ns > 1:
-        edges = np.empty((ns, 4))  # height, left and right half-height points, edge sigma
+        # per band: height, left and right half-height points, edge sigma
+        edges = work[_W_EDGES : _W_EDGES + 4, :ns]
         for k in range(ns):
-            edges[k, 0] = out[k, F_HEIGHT]
-            edges[k, 1] = out[k, F_START]
-            edges[k, 2] = out[k, F_END]
-            edges[k, 3] = out[k, F_RAMP] / ERF_20_50
+            edges[0, k] = out[k, F_HEIGHT]
+            edges[1, k] = out[k, F_START]
+            edges[2, k] = out[k, F_END]
+            edges[3, k] = out[k, F_RAMP] / ERF_20_50
         # each gap serves two bands: its tails once (gap k lies left of band k)
         for g in range(ns + 1):
-            if not ((g > 0 and edges[g - 1, 0] > 0.0) or (g < ns and edges[g, 0] > 0.0)):
+            if not ((g > 0 and edges[0, g - 1] > 0.0) or (g < ns and edges[0, g] > 0.0)):
                 continue
             g0, g1 = _gap(seg_a, seg_b, ns, n, g)
             if g1 >= g0:
                 tails[g] = _tails(g0, g1, edges, g - 1, g)
         for k in range(ns):
-            if not (edges[k, 0] > 0.0):
+            if not (edges[0, k] > 0.0):
                 continue
             tl = tails[k]
             tr = tails[k + 1]
-            if max(tl, tr) < 0.002 * edges[k, 0]:
+            if max(tl, tr) < 0.002 * edges[0, k]:
                 continue
-            a = seg_a[k]
-            b = seg_b[k]
+            used_l[k] = tl
+            used_r[k] = tr
             gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
             gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
-            _measure_band(x, thr, k, a, b, gap_lv[k] - tl, gap_lv[k + 1] - tr, gap_dp[k],
-                          gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), tl, tr,
-                          min_contrast, sym_tol, out)  # fmt: skip
+            _band_shape(x, k, seg_a[k], seg_b[k], gap_lv[k] - tl, gap_lv[k + 1] - tr,
+                        0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), min_contrast, out,
+                        shape)  # fmt: skip
+    # the checks, once per band, on its last measurement
+    for k in range(ns):
+        if shape[_S_DONE, k] == 0.0:
+            continue
+        gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
+        gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
+        _band_checks(x, thr, k, gap_dp[k], gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1),
+                     used_l[k], used_r[k], sym_tol, out, shape)  # fmt: skip
     # Bands swept further than their interval add up to a periodic profile on a raised
     # floor: narrow pulses where n + 1 swept lines cover a point, n elsewhere.  Their
     # shape is that of short bands with clean gaps; only the floor tells them apart.
     # Light only adds, so the lowest gap within FLOOR_GAPS gaps bounds the floor there;
     # a band whose gaps on both sides lie well above it rides on other bands.
-    low = np.empty(ns + 1)
+    low = work[_W_LOW]
     # the outer gaps reach as far as the inner ones do (their levels stop at 24 samples)
     spacing = (seg_a[ns - 1] - seg_a[0]) / (ns - 1) if ns > 1 else 24.0
     far = int(FLOOR_GAPS * spacing)
@@ -808,7 +926,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         if g == ns:
             g1 = min(n - 1, seg_b[ns - 1] + far)
         low[g] = _gap_floor(x, g0, g1) if g1 >= g0 else np.inf
-    floor = np.empty(ns + 1)
+    floor = work[_W_FLOOR]
     for g in range(ns + 1):
         lo_f = np.inf
         for q in range(max(0, g - FLOOR_GAPS), min(ns, g + FLOOR_GAPS) + 1):
@@ -926,7 +1044,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     return ns
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _trend_interval(out, ns, kp, k, kn, itol):
     """Band ``k``'s interval where its spacings change as a smooth trend; NaN at a step.
 
@@ -990,7 +1108,7 @@ def _density_at(x0, x1, x2, x3, x):
             + r2 * (x - m0) * (x - m1) / ((m2 - m0) * (m2 - m1)))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _side_interval(out, ns, k, k1, k2, itol):
     """Band ``k``'s interval from two neighbours on one side (``k1`` next, ``k2`` beyond).
 
@@ -1110,9 +1228,9 @@ def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, grou
     w = img.shape[1]
     n_p = weights.shape[0]
     v = int(params[4])
+    x = np.empty((n_p, w))
+    thr = np.empty((n_p, 2, w))
     for g in range(g0, g1):
-        x = np.empty((n_p, w))
-        thr = np.empty((n_p, 2, w))
         for q in range(group):
             i = g * group + q
             _row_signals(img, row_y[i] - v, row_y[i] + v, weights, x)
@@ -1215,7 +1333,7 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
         j = b + 1 + int(reach * maps[interval_field, i, b] / stride) + 1
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     """Interpolate the band fields of measured row ``r`` onto the grid columns.
 
@@ -1223,6 +1341,8 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     interval).  Values are interpolated linearly between neighbouring valid bands
     at most 1.6 intervals apart and extrapolated linearly ``reach`` intervals
     beyond the ends of each run; elsewhere NaN.  ``t``: scratch of ``gw`` values.
+    Compiled without reference counting (``_nrt=False``): its views of ``maps`` would
+    count on the grids that both threads write.
     """
     nf = fields.shape[0]
     off = 0.5 * (stride - 1)
@@ -1240,14 +1360,18 @@ def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
             if 0.0 < c1 - c0 <= 1.6 * max(bands[r, prev, F_INTERVAL], bands[r, k, F_INTERVAL]):
                 j0 = max(int(np.ceil((c0 - off) / stride)), 0)
                 j1 = min(int(np.floor((c1 - off) / stride)), gw - 1)
-                # positions first, then one field at a time: loops without reloads
-                for j in range(j0, j1 + 1):
-                    t[j] = (j * stride + off - c0) / (c1 - c0)
+                # positions first, then one field at a time: loops without reloads, counted
+                # from 0 on views, so that the compiler knows no index is negative (one
+                # that might be is wrapped around, and the loop stores one value at a time)
+                m = j1 + 1 - j0
+                for q in range(m):
+                    t[q] = ((j0 + q) * stride + off - c0) / (c1 - c0)
                 for f in range(nf):
                     v0 = bands[r, prev, fields[f]]
                     dv = bands[r, k, fields[f]] - v0
-                    for j in range(j0, j1 + 1):
-                        maps[f, i, j] = v0 + t[j] * dv
+                    run = maps[f, i, j0 : j1 + 1]
+                    for q in range(m):
+                        run[q] = v0 + t[q] * dv
         # a band without partner still marks its own grid sample
         c = bands[r, k, F_CENTRE]
         jc = int(np.floor((c - off) / stride + 0.5))

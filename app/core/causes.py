@@ -105,13 +105,23 @@ def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
     for i in range(i0, i1):
         r = i * k
         n = counts[r]
+        if n == 0:
+            for j in range(gw):
+                out[i, j] = NO_LINES
+            continue
+        # the supports of the nearest band so far and of the next one, read once per band
         q = 0
+        a, b = _support(bands, r, 0)
+        a1, b1 = _support(bands, r, 1) if n > 1 else (0.0, 0.0)
         for j in range(gw):
             x = j * stride + off
             # bands are in column order: advance while the next one is nearer
-            while q + 1 < n and _distance(bands[r, q + 1], x) <= _distance(bands[r, q], x):
+            while q + 1 < n and _distance(a1, b1, x) <= _distance(a, b, x):
                 q += 1
-            if n == 0 or _distance(bands[r, q], x) > reach:
+                a, b = a1, b1
+                if q + 1 < n:
+                    a1, b1 = _support(bands, r, q + 1)
+            if _distance(a, b, x) > reach:
                 out[i, j] = NO_LINES
             elif bands[r, q, F_VALID] > 0:
                 out[i, j] = DEPTH
@@ -120,10 +130,16 @@ def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _distance(band, x):
-    ramp = band[F_RAMP] if band[F_RAMP] > 0 else 0.0
-    a = band[F_START] - 2.0 * ramp
-    b = band[F_END] + 2.0 * ramp
+def _support(bands, r, q):
+    """First and last column of band ``q`` of row ``r``'s support: its extent and two
+    ramps on each side."""
+    ramp = bands[r, q, F_RAMP] if bands[r, q, F_RAMP] > 0 else 0.0
+    return bands[r, q, F_START] - 2.0 * ramp, bands[r, q, F_END] + 2.0 * ramp
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _distance(a, b, x):
+    """Distance from column ``x`` to the support ``a .. b`` (0 inside)."""
     if x < a:
         return a - x
     if x > b:
