@@ -321,8 +321,11 @@ def test_matrix_on_fresh_seeds(tmp_path, capsys):
     names = {c.rig_name for c in matrix_cases(seeds=(7, 8))}
     assert {"gen7", "gen8-distorted", "single-projector"} <= names
     assert not any(n.startswith("gen2026") for n in names)
-    for bad in (["--seeds", "9-7"], ["--seeds", "x"], ["--seeds", "3", "--tuning-rigs"]):
+    for bad in (["--seeds", "9-7"], ["--seeds", "x"], ["--seeds", "3-"], ["--seeds", "3-5,4"],
+                ["--seeds", "3", "--tuning-rigs"]):  # fmt: skip
         assert cli_main(["eval", "--matrix", str(tmp_path / "m"), *bad]) == 2, bad
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("lightflow: error: --seeds"), err
-    assert not list((tmp_path / "m").glob("gen*"))  # nothing rendered
+    assert not (tmp_path / "m").exists()  # nothing created
+    assert cli_main(["eval", "--seeds", "3"]) == 2
+    assert capsys.readouterr().err == "lightflow: error: --seeds: only with --matrix DIR\n"

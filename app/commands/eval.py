@@ -36,7 +36,7 @@ toe-in 15-35 degrees, pitches 16-40 px, one with lens distortion) and the
 single-projector rig, the paper's scenes at its exposures (fan 1 ms, balls 5
 and 8 ms, boards 300 ms) and our faster boards at 20 ms.  The rigs it
 reports were never used to choose defaults (--tuning-rigs shows those);
---seeds draws fresh ones, e.g. `--seeds 13-18`, to check that they carry over.
+--seeds draws fresh ones, e.g. `--seeds 19-24`, to check that they carry over.
 
 Example:
   for e in 0.005 0.01 0.02 0.03; do
@@ -73,8 +73,9 @@ def register(subparsers) -> None:
                    "reported ones")
     p.add_argument("--seeds", default="", metavar="LIST",
                    help="--matrix: draw the two-projector rigs from these generator seeds "
-                   "instead (e.g. 7-12 or 3,5,9; the last one gets lens distortion): rigs "
-                   "nobody has tuned on, to check that the defaults carry over")
+                   "instead (e.g. 19-24 or 19,21,30; the last one gets lens distortion), to "
+                   "check that the defaults carry over to rigs nobody has looked at (1-18 "
+                   "were)")
     p.add_argument(
         "--plot",
         type=Path,
@@ -171,6 +172,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.matrix is not None:
         return _run_matrix(args)
+    if args.seeds:
+        raise ConfigError("--seeds: only with --matrix DIR")
     if not args.recordings:
         raise ConfigError("eval: give recording folders, or --matrix DIR")
     rig = resolve_rig(args.rig) if args.rig else None
@@ -229,13 +232,16 @@ def _seed_list(text: str) -> tuple[int, ...]:
     seeds: list[int] = []
     try:
         for part in text.split(","):
-            a, _, b = part.strip().partition("-")
-            lo, hi = int(a), int(b or a)
+            a, dash, b = part.strip().partition("-")
+            lo, hi = int(a), int(b if dash else a)
             if hi < lo:
                 raise ValueError
             seeds.extend(range(lo, hi + 1))
     except ValueError:
-        raise ConfigError(f"--seeds: expected seeds like 7-12 or 3,5,9, got {text!r}") from None
+        raise ConfigError(f"--seeds: expected seeds like 19-24 or 19,21,30, got {text!r}"
+                          ) from None  # fmt: skip
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError(f"--seeds: {text!r} names a seed twice")
     return tuple(seeds)
 
 

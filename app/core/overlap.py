@@ -666,7 +666,7 @@ FLOOR_REACH = FLOOR_GAPS
 CONTINUATION_TOLERANCE = 0.3
 #: sweeps down and up the rows that carry a measured train to the rows above and below,
 #: where no clean gap shows the floor (:func:`_flood_trains`; chosen on tuning rigs 4, 9 and
-#: 10, whose dense pattern sweeps 1.1-1.3 intervals at the matrix's exposures: their boards
+#: 10, whose dense pattern sweeps 1.1-1.8 intervals at the matrix's exposures: their boards
 #: read tens of centimetres off where a row's pulses passed for short bands), and how far
 #: (line intervals) a band's link to the next row reaches (as the slant's links)
 FLOOD_PASSES = 2
@@ -852,9 +852,23 @@ def warm_up(params: OverlapParams | None = None) -> None:
     bands[:, 0, :, F_VALID] = BAND_OVERLAP
     bands[:, 0, :, F_FLOOR] = 0.0
     bands[:, 0, :, F_LENGTH] = 15.0
+    counts = np.full((2, 1), 3, np.int64)
     measure_runs(np.zeros((1, 80, 3), np.uint8), np.eye(2, 3), np.zeros(1, np.int64), bands,
-                 np.full((2, 1), 3, np.int64), np.ones(2), np.ones(2), np.ones((2, 2)),
+                 counts, np.ones(2), np.ones(2), np.ones((2, 2)),
                  OverlapParams() if params is None else params)  # fmt: skip
+    # the kernels only a measured train reaches (a frame's first train must not wait
+    # seconds for them), on the same made-up bands: nothing continues, nothing is carried
+    # (the argument types and layouts of measure_runs' calls: B a column of a table)
+    runs = np.array([[0, 0, 2]], np.int64)
+    one = np.zeros(1, np.int64)
+    prep = np.ones((2, 6))  # two rows: a column of it is not contiguous
+    B = prep[:, 0]
+    _reject_continuations(bands, counts, one, runs, one, B, prep[:, 4] * B,
+                          CONTINUATION_TOLERANCE)  # fmt: skip
+    member = np.full(bands.shape[:3], -1, np.int64)
+    _flood_trains(bands, counts, one, runs, one, B, prep[:, 4] * B, CONTINUATION_TOLERANCE,
+                  FLOOD_REACH, FLOOD_PASSES, member)  # fmt: skip
+    _find_member_runs(bands, counts, member, MIN_RUN_BANDS, np.empty((1, 5), np.int64))
 
 
 def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
@@ -902,10 +916,15 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
         ``(2, 2)`` blur model, ``sigma^2 = a + b * (B / pitch)^2`` (camera px).
     params : OverlapParams
 
+    A train measured next to a clean gap (``n >= 1``) is carried to the rows above and
+    below it, whose pulses pass for short bands where no clean gap is near
+    (:func:`_flood_trains`): those pulses are measured in pieces with the train's
+    ``L / B`` as the reference for ``n``, or rejected.
+
     Returns
     -------
     int
-        The number of runs measured.
+        The number of runs (and pieces of carried pulses) measured.
     """
     width = image.shape[1]
     parts = []
