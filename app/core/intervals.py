@@ -436,6 +436,13 @@ def _interval_depth(intervals, where, a, c, pitch, inv_z0, inv_z_step, coarse, z
             for q in range(n - 1):
                 if np.isfinite(res[q]) and np.isfinite(res[q + 1]) \
                         and (res[q] <= 0.0) != (res[q + 1] <= 0.0):  # fmt: skip
+                    # a pole jumps through 0 far more steeply than a root crosses it (at
+                    # most MAX_SENSITIVITY over the bracket's span of log z): not a depth,
+                    # and no second one beside a true root
+                    span = math.log((inv_z0 + ks[q] * inv_z_step)
+                                    / (inv_z0 + ks[q + 1] * inv_z_step))  # fmt: skip
+                    if abs(res[q + 1] - res[q]) > MAX_SENSITIVITY * abs(span):
+                        continue
                     if found >= 0:
                         found = -2  # two depths explain the intervals: none is known
                         break
