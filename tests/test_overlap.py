@@ -410,7 +410,16 @@ def detect_and_measure_rows(B, w, sigma, L, rows):
             for j in range(max(0, int(ck) - reach), min(n, int(ck) + reach + 2)):
                 v[j] += 80.0 * pixel_value(j - ck, L, w, sigma)
         img[i] = v[:, None]
-    img = np.ascontiguousarray(img)
+    img, weights, row_y, bands, counts = detect_rows(img[:, :, 0], B)
+    measure_runs(img, weights, row_y, bands, counts, np.array([w, w]), np.array([B, B]),
+                 np.array([[sigma * sigma, 0.0]] * 2), OverlapParams(max_rel_std=0.02))
+    return bands[0], counts[0]
+
+
+def detect_rows(rows, B):
+    """Rows of signal (one image row each, in every channel) through the band detector:
+    ``(image, weights, row_y, bands, counts)``, as :func:`measure_runs` takes them."""
+    img = np.ascontiguousarray(np.repeat(np.asarray(rows, np.float64)[:, :, None], 3, 2))
     weights = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     b = BandParams()
     params = np.array([b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px,
@@ -420,9 +429,7 @@ def detect_and_measure_rows(B, w, sigma, L, rows):
     counts = np.empty((2, len(rows)), np.int64)
     detect_bands(img, weights, row_y, np.array([int(2 * B) | 1] * 2, np.int64), 255.0, params,
                  bands, counts)  # fmt: skip
-    measure_runs(img, weights, row_y, bands, counts, np.array([w, w]), np.array([B, B]),
-                 np.array([[sigma * sigma, 0.0]] * 2), OverlapParams(max_rel_std=0.02))
-    return bands[0], counts[0]
+    return img, weights, row_y, bands, counts
 
 
 @pytest.mark.parametrize("B,w,sigma", RUN_SETS[:3])
@@ -476,17 +483,7 @@ def test_a_train_is_not_carried_onto_bands_of_their_own():
         return v
 
     def detect(rows):
-        img = np.ascontiguousarray(np.repeat(np.array(rows)[:, :, None], 3, 2))
-        weights = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-        b = BandParams()
-        params = np.array([b.min_contrast, b.interval_tolerance, b.symmetry_tolerance_px,
-                           b.min_gap_px, b.vertical_extra])  # fmt: skip
-        row_y = np.arange(len(rows), dtype=np.int64)
-        bands = np.empty((2, len(rows), 96, N_FIELDS))
-        counts = np.empty((2, len(rows)), np.int64)
-        detect_bands(img, weights, row_y, np.array([int(2 * B) | 1] * 2, np.int64), 255.0,
-                     params, bands, counts)  # fmt: skip
-        return img, weights, row_y, bands, counts
+        return detect_rows(rows, B)
 
     train = row(L, 80.0, 0.0, range(30))
     # the train's pulses (n = 1: half-way between the lines) and their height

@@ -1137,11 +1137,7 @@ def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes
     heights = np.empty(runs.shape[0])
     for q in trains:
         p, r = pat[q], runs[q, 0]
-        n = runs[q, 2] - runs[q, 1] + 1
-        hs = np.empty(n)
-        for i in range(n):
-            hs[i] = bands[p, r, runs[q, 1] + i, F_HEIGHT]
-        heights[q] = _median(hs)
+        heights[q] = _run_height(bands, p, runs[q])
         for k in range(runs[q, 1], runs[q, 2] + 1):
             member[p, r, k] = q
             ref_len[p, r, k] = pulse[q]
@@ -1182,6 +1178,16 @@ def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes
                     bands[p, r, k, F_VALID] = BAND_OVERLAP
                     marked += 1
     return marked
+
+
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
+def _run_height(bands, p, run):
+    """The median height of the bands of ``run = (row, first, last)`` of pattern ``p``."""
+    n = run[2] - run[1] + 1
+    heights = np.empty(n)
+    for i in range(n):
+        heights[i] = bands[p, run[0], run[1] + i, F_HEIGHT]
+    return _median(heights)
 
 
 @nb.njit(cache=True, error_model="numpy", **_INTERNAL)
@@ -1228,11 +1234,7 @@ def _reject_continuations(bands, counts, pat, runs, done, B, pulse, tol):
     """
     for q in done:
         p, r = pat[q], runs[q, 0]
-        n = runs[q, 2] - runs[q, 1] + 1
-        heights = np.empty(n)
-        for i in range(n):
-            heights[i] = bands[p, r, runs[q, 1] + i, F_HEIGHT]
-        height = _median(heights)
+        height = _run_height(bands, p, runs[q])
         for side in range(2):
             step = 1 if side else -1
             k = runs[q, 2] + 1 if side else runs[q, 1] - 1
