@@ -13,6 +13,8 @@ projector's defocus (fixed in projector pixels) separate
 The same lines give the camera's response curve first (:func:`measure_response`):
 a static line's ramp gives its blur, the blur and its known width give its
 width at half height, and a camera that is not linear reads every line wider.
+And they give the colour crosstalk between the two patterns' channels
+(:func:`measure_crosstalk`): still lines leave the clean gaps its estimate needs.
 """
 
 from __future__ import annotations
@@ -170,8 +172,40 @@ def measure_blur(rig: Rig, frames: Iterable, stride: int = 4) -> list[PatternBlu
     return out
 
 
+def measure_crosstalk(rig: Rig, frames: Iterable, stride: int = 4) -> list[float | None]:
+    """Each pattern's colour crosstalk on frames of static surfaces.
+
+    Across each still line of one pattern that falls in a gap of the other, the
+    other pattern's camera channel rises by the crosstalk times the line's height
+    (:func:`lightflow.app.core.bands.estimate_leak`).  Still lines leave wide, clean
+    gaps, which moving bands often do not.
+
+    Parameters
+    ----------
+    rig : Rig
+        With the camera's response already measured (the estimate is in linear values).
+    frames : iterable of Frame
+        Frames whose lines stand still (see :func:`measure_blur`).
+    stride : int
+
+    Returns
+    -------
+    list of float or None
+        Per pattern (file order), the median of the frames' estimates; None where no
+        frame gave one.
+    """
+    pipeline = DepthPipeline(rig, PipelineConfig(stride=stride))
+    estimates = np.array([pipeline.estimate_crosstalk(frame) for frame in frames]).reshape(-1, 2)
+    out: list[float | None] = []
+    for p in range(2):
+        seen = estimates[np.isfinite(estimates[:, p]), p]
+        out.append(float(np.median(seen)) if seen.size else None)
+    return out
+
+
 def calibrate_optics(rig: Rig, frames: Iterable, stride: int = 4):
-    """The camera's response, then each pattern's blur in linear values: what ``rig blur`` does.
+    """The camera's response, then each pattern's blur and crosstalk in linear values: what
+    ``rig blur`` does.
 
     Parameters
     ----------
@@ -183,8 +217,9 @@ def calibrate_optics(rig: Rig, frames: Iterable, stride: int = 4):
     Returns
     -------
     (Rig, CameraResponse or None, list of PatternBlur)
-        The rig with the measured ``camera.gamma`` and blur; the response is None
-        (and the rig's gamma kept) when it could not be measured.
+        The rig with the measured ``camera.gamma``, blur and crosstalk; the response
+        is None (and the rig's gamma kept) when it could not be measured, and the
+        rig's crosstalk is kept unless every pattern's was measured.
     """
     frames = list(frames)
     try:
@@ -194,4 +229,7 @@ def calibrate_optics(rig: Rig, frames: Iterable, stride: int = 4):
     if response is not None:
         rig = rig.with_camera_gamma(response.gamma)
     blurs = measure_blur(rig, frames, stride)
+    crosstalk = measure_crosstalk(rig, frames, stride)
+    if all(c is not None for c in crosstalk):
+        rig = rig.with_crosstalk(crosstalk)
     return rig.with_blur((pb.camera_px2, pb.projector_px2) for pb in blurs), response, blurs

@@ -412,6 +412,22 @@ def test_estimate_leak(two_pattern_light, kind):
     assert abs(br - LEAK_BR) <= 0.01
 
 
+def test_estimate_leak_into_a_dense_pattern():
+    """Red lines 20 px apart, blue 60 px: no red gap holds a whole blue band with its floor
+    on both sides (the estimate used to need that, and gave none here); the parts of the
+    red gaps that blue bands cross give it."""
+    H, W = 240, 800
+    red = 150.0 * _slanted_bands(H, W, 20.0, 2.0, 2.5, 0.8, 3.0, 0.05)
+    blue = 150.0 * _slanted_bands(H, W, 60.0, 4.0, 5.0, 0.8, 17.0, -0.04)
+    img = _camera_image(red, blue) + np.random.default_rng(6).normal(0.0, 1.0, (H, W, 3))
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    rb = estimate_leak(img, 0, 2, (41, 121))
+    br = estimate_leak(img, 2, 0, (121, 41))
+    print(f"\nleak blue->red {rb:.4f} (true {LEAK_RB}), red->blue {br:.4f} (true {LEAK_BR})")
+    assert abs(rb - LEAK_RB) <= 0.005
+    assert abs(br - LEAK_BR) <= 0.005
+
+
 # ------------------------------------------------------------------ blur from short bands
 
 

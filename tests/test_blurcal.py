@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lightflow.app.blurcal import measure_blur, measure_response
+from lightflow.app.blurcal import measure_blur, measure_crosstalk, measure_response
 from lightflow.app.cli import main
 from lightflow.app.core.flow import FlowModel, FlowParams
+from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
 from lightflow.app.core.rig import load_rig
 from lightflow.app.recording import RecordingWriter, read_recording, recording_frames
 from lightflow.drivers.sim.synthetic import SensorModel, SyntheticCamera
@@ -104,11 +105,63 @@ def test_rig_blur_writes_a_rig_whose_blur_the_pipeline_uses(steps, tmp_path, cap
     assert set(blur) == {"camera_px2", "projector_px2"}
     rig = load_rig(out)
     base = load_rig(RIG_FILE)
+    assert rig.crosstalk is not None
     assert rig.geometry_digest() == base.scaled(0.5).geometry_digest()  # same depth table
     model = FlowModel(rig)
     assert model.calibrated and model.fitted
     assert not model.refits_at(0, FlowParams())  # never refitted
     np.testing.assert_allclose(model.blur[0], [blur["camera_px2"], blur["projector_px2"]])
+
+
+def simulated_crosstalk(rig) -> list[float]:
+    """Per pattern, the share of the other pattern's light its channel sees in the simulator."""
+    from lightflow.app.core.rig import CHANNEL_INDEX
+
+    xt = np.asarray(SensorModel().crosstalk)
+    a, b = (CHANNEL_INDEX[pat.channel] for _, pat in rig.patterns)
+    return [float(xt[a, b]), float(xt[b, a])]
+
+
+def test_crosstalk_from_still_lines_matches_the_simulated_camera(steps):
+    """Measured 0.0399 and 0.0313 against the simulator's 0.04 and 0.03 (both directions:
+    the dense pattern's channel too, whose gaps are narrower than a sparse band with its
+    floor)."""
+    rec = read_recording(steps)
+    measured = measure_crosstalk(rec.rig, recording_frames(rec))
+    print(f"\ncrosstalk {measured}, simulated {simulated_crosstalk(rec.rig)}")
+    assert measured == pytest.approx(simulated_crosstalk(rec.rig), abs=0.003)
+
+
+def test_rig_blur_writes_the_crosstalk_that_the_pipeline_then_subtracts(steps, tmp_path, capsys):
+    out = tmp_path / "rig-crosstalk.json"
+    assert main(["rig", "blur", str(steps), "--out", str(out)]) == 0
+    assert "colour crosstalk: the red channel sees" in capsys.readouterr().out
+    rig = load_rig(out)
+    assert rig.crosstalk == pytest.approx(simulated_crosstalk(rig), abs=0.003)
+    # the moving frames of a 300 ms board show few clean gaps: the rig's crosstalk is used
+    # from the first frame on, and never replaced by the frames' estimates
+    cam = SyntheticCamera(rig, "slow-board", frames=2)
+    pipeline = DepthPipeline(rig, PipelineConfig())
+    with cam:
+        for frame in cam.frames():
+            result = pipeline.process(frame)
+            assert result.leak_known
+            np.testing.assert_allclose(pipeline.state()["pipeline"]["_leak"], rig.crosstalk)
+    # a number given as the option still wins
+    fixed = DepthPipeline(rig, PipelineConfig(crosstalk=0.01))
+    assert fixed.state()["pipeline"]["_leak_known"].sum() == 0
+
+
+@pytest.mark.parametrize("value", [-0.01, 0.2, "0.04"])
+def test_bad_crosstalk_field_is_one_line(value, tmp_path, capsys):
+    doc = json.loads(RIG_FILE.read_text())
+    doc["projectors"][0]["patterns"][0]["crosstalk"] = value
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(doc))
+    status = main(["rig", "check", str(path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1
+    assert "patterns[0].crosstalk" in err[0] and "expected" in err[0]
 
 
 def test_rig_blur_on_moving_lines_is_one_line(tmp_path, capsys):

@@ -44,7 +44,7 @@ examples:
 BLUR_DESCRIPTION = """\
 Measure the camera's response curve and how blurred each pattern's lines are
 in the camera, once per rig, and write both into the rig file (camera.gamma and
-each pattern's "blur").  Fast objects (a fan at 1 ms, a ball at 5 ms) move
+each pattern's "blur", with its "crosstalk").  Fast objects (a fan at 1 ms, a ball at 5 ms) move
 their lines less than the lines' own width; their sweep then shows only in the
 edges of the band, and reading it needs the blur.
 Without this measurement the pipeline fits the blur on the moving bands of the
@@ -61,7 +61,13 @@ and that blur give its width at half height, and a camera that is not linear
 agree is written as camera.gamma (1: linear), and every frame of every run is
 linearised with it.  Prints the gamma, then per pattern the two parts of the
 blur, the blur at a few magnifications and how many line measurements were
-used.  Exit status 2 with one line when a recording shows too few still lines."""
+used.  Exit status 2 with one line when a recording shows too few still lines.
+
+The still lines also give the colour crosstalk: the share of one pattern's
+light that the other pattern's camera channel sees (each pattern's
+"crosstalk").  Every frame has it subtracted.  Without it the pipeline
+estimates it on the frames, which needs clean gaps between bands; long sweeps
+leave too few, and then one pattern's lines show inside the other's bands."""
 
 BLUR_EPILOG = """\
 examples:
@@ -204,9 +210,18 @@ def run_blur(args: argparse.Namespace) -> int:
             print(f"WARNING pattern {i}: all lines were seen at about one magnification "
                   f"({lo:.2f}-{hi:.2f}): record still surfaces at other distances too, "
                   f"or the blur away from this one is a guess")  # fmt: skip
+    measured = out.crosstalk
+    if measured is None:
+        print("colour crosstalk: not measured (too few clean gaps between still lines); "
+              "the pipeline will estimate it on the frames")  # fmt: skip
+    else:
+        (_, p1), (_, p2) = rig.patterns
+        print(f"colour crosstalk: the {p1.channel} channel sees {100 * measured[0]:.1f} % of "
+              f"the {p2.channel} pattern's light, the {p2.channel} channel "
+              f"{100 * measured[1]:.1f} % of the {p1.channel} one's (subtracted from every frame)")
     save_rig(out, args.out)
     print(f"wrote {args.out}: the rig with the camera's response and each pattern's "
-          f"measured blur")  # fmt: skip
+          f"measured blur and crosstalk")  # fmt: skip
     return 0
 
 

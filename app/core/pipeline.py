@@ -74,7 +74,9 @@ class PipelineConfig:
     flow : FlowParams
     bands : BandParams
     crosstalk : str or float
-        ``auto`` estimates the colour leak from each frame; a number fixes it.
+        ``auto`` takes the colour leak from the rig (each pattern's ``crosstalk``,
+        measured by ``lightflow rig blur``), else estimates it from the frames now and
+        then; a number fixes it.
     crosstalk_every : int
         Frames between two estimates of the colour leak (and of the band windows).
     max_depth_std : float
@@ -198,6 +200,12 @@ class DepthPipeline:
         self.grid_shape = self.lut.h0.shape
         self._leak = np.zeros(2)
         self._leak_known = np.zeros(2, dtype=bool)
+        # a crosstalk measured on still lines (``lightflow rig blur``) is the rig's own: the
+        # frames' estimates need clean gaps between bands, which long sweeps do not leave
+        self._rig_leak = rig.crosstalk if cfg.crosstalk == "auto" else None
+        if self._rig_leak is not None:
+            self._leak[:] = self._rig_leak
+            self._leak_known[:] = True
         self._windows: np.ndarray | None = None
         self._frames = 0
         self.blur_px: list[float] = [np.nan, np.nan]
@@ -255,13 +263,9 @@ class DepthPipeline:
         cfg = self.config
         if cfg.crosstalk != "auto":
             self._leak[:] = float(cfg.crosstalk)
-        elif self._frames % cfg.crosstalk_every == 0:
+        elif self._rig_leak is None and self._frames % cfg.crosstalk_every == 0:
             # a property of the rig, not of a frame: refresh now and then, smoothed
-            wins = self._windows if self._windows is not None else (61, 61)
-            est = np.array([
-                bd.estimate_leak(image, a, b, (wins[0], wins[1])),
-                bd.estimate_leak(image, b, a, (wins[1], wins[0])),
-            ])  # fmt: skip
+            est = self._crosstalk_in(image)
             # a frame without clean gaps keeps the last estimate (0 until there is one)
             fresh = np.isfinite(est)
             blended = np.where(self._leak_known, 0.7 * self._leak + 0.3 * est, est)
@@ -355,7 +359,7 @@ class DepthPipeline:
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
                            "_full_size", "_linear_table", "_overlap", "_periodic",
-                           "_snapping"})  # fmt: skip
+                           "_rig_leak", "_snapping"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:
@@ -551,18 +555,8 @@ class DepthPipeline:
         scratch, overwritten by the next call).
         """
         cfg = self.config
-        image = frame.image
-        cam = self.rig.camera
-        if image.shape[:2] != (cam.height, cam.width) or image.ndim != 3:
-            raise FrameError(
-                f"frame {frame.stem}: {image.shape[1]}x{image.shape[0]}, expected "
-                f"{cam.width}x{cam.height} (camera.width x camera.height)"
-            )
         t0 = time.perf_counter()
-        # a 12-bit camera's full scale is 4095, not the uint16 maximum
-        self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
-                                   else 255.0)  # fmt: skip
-        image = self._linearise(image)
+        image = self._prepared(frame)
         weights = self._weights(image)
         relearn = self._windows is None or self._frames % cfg.crosstalk_every == 0
         rows = self._read_rows
@@ -754,6 +748,35 @@ class DepthPipeline:
         m, r, line = (samples[:, c] if keep is None else samples[:, c][keep] for c in range(3))
         return static_width_excess(m.ravel(), r.ravel(), line.ravel(),
                                    min_bands=rsp.MIN_STILL_LINES)  # fmt: skip
+
+    def estimate_crosstalk(self, frame) -> np.ndarray:
+        """Per pattern (file order), the share of the other pattern's light that its camera
+        channel sees in ``frame``: NaN where the frame shows too few clean gaps for it.
+
+        What ``crosstalk = "auto"`` estimates now and then; the pipeline's state is
+        unchanged.  On still lines (``lightflow rig blur``) it is the rig's crosstalk.
+        """
+        return self._crosstalk_in(self._prepared(frame))
+
+    def _crosstalk_in(self, image: np.ndarray) -> np.ndarray:
+        a, b = self.channels
+        wins = self._windows if self._windows is not None else (61, 61)
+        return np.array([bd.estimate_leak(image, a, b, (wins[0], wins[1])),
+                         bd.estimate_leak(image, b, a, (wins[1], wins[0]))])  # fmt: skip
+
+    def _prepared(self, frame) -> np.ndarray:
+        """``frame``'s image, its size checked, in linear values (the full scale set)."""
+        image = frame.image
+        cam = self.rig.camera
+        if image.shape[:2] != (cam.height, cam.width) or image.ndim != 3:
+            raise FrameError(
+                f"frame {frame.stem}: {image.shape[1]}x{image.shape[0]}, expected "
+                f"{cam.width}x{cam.height} (camera.width x camera.height)"
+            )
+        # a 12-bit camera's full scale is 4095, not the uint16 maximum
+        self._full_scale = getattr(frame, "full_scale", 65535.0 if image.dtype == np.uint16
+                                   else 255.0)  # fmt: skip
+        return self._linearise(image)
 
     def _linearise(self, image: np.ndarray) -> np.ndarray:
         """``image`` in linear values (and the full scale set to theirs), unless the camera is."""

@@ -22,6 +22,8 @@ from .errors import ConfigError
 
 #: the camera response curves (gamma) a rig may give
 GAMMA_RANGE = (0.3, 4.0)
+#: the largest colour crosstalk a rig may give (a share of the other pattern's light)
+MAX_CROSSTALK = 0.15
 
 RIG_FORMAT = "lightflow-rig/1"
 CHANNELS = ("red", "green", "blue")
@@ -53,6 +55,13 @@ class Pattern:
         blur``): ``(a, b)`` with ``sigma^2 = a (1 + slant^2) + b m^2`` in camera
         px^2, ``m`` the magnification (camera px per projector px).  Without
         it the pipeline fits the blur on the moving bands of the first frames.
+    crosstalk : float, optional
+        Measured share of the other pattern's light that this pattern's camera
+        channel sees (``lightflow rig blur``, on still lines), 0 to
+        :data:`MAX_CROSSTALK`.  The pipeline subtracts it.  Without it the
+        pipeline estimates it on the frames, which needs clean gaps between this
+        pattern's bands: long sweeps leave too few, and the other pattern's lines
+        then show inside this pattern's bands.
     """
 
     channel: str
@@ -62,6 +71,7 @@ class Pattern:
     offset_px: float = 0.0
     lines: int = 0
     blur: tuple | None = None
+    crosstalk: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"channel": self.channel, "kind": self.kind}
@@ -71,6 +81,8 @@ class Pattern:
             d.update(lines=self.lines, width_px=self.width_px)
         if self.blur is not None:
             d["blur"] = {"camera_px2": self.blur[0], "projector_px2": self.blur[1]}
+        if self.crosstalk is not None:
+            d["crosstalk"] = self.crosstalk
         return d
 
 
@@ -165,6 +177,25 @@ class Rig:
             projectors.append(replace(proj, patterns=pats))
         return replace(self, projectors=tuple(projectors))
 
+    def with_crosstalk(self, values) -> Rig:
+        """The same rig with a measured crosstalk per pattern (file order), or None."""
+        values = list(values)
+        projectors = []
+        for proj in self.projectors:
+            pats = tuple(replace(pat, crosstalk=None if (c := values.pop(0)) is None
+                                 else float(c))
+                         for pat in proj.patterns)  # fmt: skip
+            projectors.append(replace(proj, patterns=pats))
+        return replace(self, projectors=tuple(projectors))
+
+    @property
+    def crosstalk(self) -> np.ndarray | None:
+        """Per pattern (file order), the measured crosstalk; None unless every pattern has one."""
+        values = [pat.crosstalk for _, pat in self.patterns]
+        if any(v is None for v in values):
+            return None
+        return np.array(values, np.float64)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "format": RIG_FORMAT,
@@ -180,14 +211,15 @@ class Rig:
     def geometry_digest(self) -> str:
         """A stable hash of the geometry and patterns only (keys the LUT cache).
 
-        The same as :meth:`digest` for a rig without a measured blur, which does
-        not change where lines fall.
+        The same as :meth:`digest` for a rig without a measured blur or crosstalk,
+        which do not change where lines fall.
         """
         d = self.to_dict()
         d["camera"].pop("gamma", None)  # the response does not move a line either
         for proj in d["projectors"]:
             for pat in proj["patterns"]:
                 pat.pop("blur", None)
+                pat.pop("crosstalk", None)
         text = json.dumps(d, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -394,9 +426,9 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
         raise rd.fail(where, "expected an object")
     kind = rd.string(d.get("kind"), f"{where}.kind", PATTERN_KINDS)
     if kind == "uniform":
-        rd.obj(d, where, base | {"pitch_px", "offset_px"}, {"blur"})
+        rd.obj(d, where, base | {"pitch_px", "offset_px"}, {"blur", "crosstalk"})
     else:
-        rd.obj(d, where, base | {"lines"}, {"blur"})
+        rd.obj(d, where, base | {"lines"}, {"blur", "crosstalk"})
     channel = rd.string(d["channel"], f"{where}.channel", CHANNELS)
     width = rd.number(d["width_px"], f"{where}.width_px", positive=True)
     blur = None
@@ -406,6 +438,12 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
                 rd.number(b["projector_px2"], f"{where}.blur.projector_px2"))  # fmt: skip
         if blur[1] < 0:
             raise rd.fail(f"{where}.blur.projector_px2", f"expected 0 or more, got {blur[1]:g}")
+    crosstalk = None
+    if "crosstalk" in d:
+        crosstalk = rd.number(d["crosstalk"], f"{where}.crosstalk")
+        if not 0 <= crosstalk <= MAX_CROSSTALK:
+            raise rd.fail(f"{where}.crosstalk", f"expected 0 to {MAX_CROSSTALK:g} (a share of the "
+                          f"other pattern's light), got {crosstalk:g}")  # fmt: skip
     if kind == "uniform":
         pitch = rd.number(d["pitch_px"], f"{where}.pitch_px", positive=True)
         offset = rd.number(d["offset_px"], f"{where}.offset_px")
@@ -419,7 +457,8 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
                 f"{where}.pitch_px",
                 f"pattern does not fit the projector: {n_lines} lines in {proj_width} px (need 3)",
             )
-        return Pattern(channel, kind, width, pitch_px=pitch, offset_px=offset, blur=blur)
+        return Pattern(channel, kind, width, pitch_px=pitch, offset_px=offset, blur=blur,
+                       crosstalk=crosstalk)
     lines = rd.integer(d["lines"], f"{where}.lines", minimum=3)
     # the narrowest gap between two exp2 lines is at the dense end
     narrowest = proj_width * (2 ** (1 / lines) - 1)
@@ -429,7 +468,7 @@ def parse_pattern(rd: FieldReader, d: Any, where: str, proj_width: int) -> Patte
             f"pattern does not fit the projector: {lines} lines leave a {narrowest:.1f} px "
             f"gap at the dense end, need more than twice width_px ({width:g})",
         )
-    return Pattern(channel, kind, width, lines=lines, blur=blur)
+    return Pattern(channel, kind, width, lines=lines, blur=blur, crosstalk=crosstalk)
 
 
 def rig_from_dict(data: Any, source: str = "rig") -> Rig:
