@@ -136,7 +136,9 @@ class IntervalModel:
         both = np.isfinite(sample).all(axis=0)
         if np.count_nonzero(both) < 16:
             return np.zeros(intervals.shape[1:], bool)
-        med = np.median(sample[:, both], axis=1)
+        # one pattern at a time: indexing both at once with the mask cost more than the
+        # medians (0.4 -> 0.27 ms; the same values)
+        med = [np.median(sample[p][both]) for p in range(2)]
         sparse = int(med[1] > med[0])
         return self._curved(intervals, sparse, float(med[sparse]))
 
