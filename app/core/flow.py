@@ -309,14 +309,16 @@ N_STACK_SINGLE = 7
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
+def _pack(sweeps, banded, interval_ratio, single, stack, busy, i0, i1):
     """Fill the channels of ``stack`` (0 where the sweeps or the interval ratio are invalid).
 
     :data:`N_STACK` channels for two projectors, :data:`N_STACK_SINGLE` for one.
+    ``busy[i]``: whether row ``i`` of ``stack`` has a channel other than 0.
     Grid rows ``i0 .. i1`` only.
     """
     gw = stack.shape[1]
     for i in range(i0, i1):
+        any_data = False
         for j in range(gw):
             stack[i, j, 3] = banded[i, j]
             a = sweeps[0, i, j]
@@ -344,6 +346,10 @@ def _pack(sweeps, banded, interval_ratio, single, stack, i0, i1):
                     stack[i, j, 4] = 0.0
                     stack[i, j, 5] = 0.0
                     stack[i, j, 6] = 0.0
+            # every other channel is 0 where these are (NaN counts as data)
+            if stack[i, j, 2] != 0.0 or stack[i, j, 3] != 0.0 or (single and stack[i, j, 6] != 0.0):
+                any_data = True
+        busy[i] = any_data
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
@@ -627,7 +633,8 @@ class FlowModel:
         # Both patterns, their common mask and their second moments in one blur.
         sigma = params.sweep_smoothing_px / max(1, self.stride)
         stack = np.empty((gh, gw, N_STACK_SINGLE if self.single else N_STACK), np.float32)
-        run_rows(_pack, gh, sweeps, banded, interval_ratio, self.single, stack)
+        busy = np.empty(gh, np.bool_)
+        run_rows(_pack, gh, sweeps, banded, interval_ratio, self.single, stack, busy)
         # grid cells under the averaging kernel, times the stride: over the interval
         # (camera px) it is the number of independent bands averaged
         cells = 4.0 * math.pi * sigma * sigma * self.stride if sigma > 0 else self.stride
@@ -645,7 +652,7 @@ class FlowModel:
             # keep the decision of ``first`` (on a fan, 1 ms of 1.8 ms per frame)
             near = _row_segments(todo.any(axis=1), _halo(sigma))
         if near is None:
-            blurred = _gauss(stack, sigma) if sigma > 0 else stack
+            blurred = _blur_busy(stack, sigma, busy)
             log_ratio = np.empty((gh, gw), np.float32)
             flows = np.empty((2, gh, gw), np.float32)
             lr_var = np.empty((gh, gw), np.float32)
@@ -807,6 +814,24 @@ def _gauss(img: np.ndarray, sigma: float) -> np.ndarray:
     k = int(round(np.sqrt(6.0 * sigma * sigma + 1.0))) | 1  # var of 2 boxes: (k^2 - 1) / 6
     once = cv2.blur(img, (k, k), borderType=cv2.BORDER_REFLECT)
     return cv2.blur(once, (k, k), borderType=cv2.BORDER_REFLECT)
+
+
+def _blur_busy(stack: np.ndarray, sigma: float, busy: np.ndarray) -> np.ndarray:
+    """:func:`_gauss` of ``stack`` (``(h, w, c)``, 0 on the rows where ``busy`` is false).
+
+    A small object (balls) leaves most rows without data: only the rows within the
+    kernel's reach of one are blurred (each as in one call, see :func:`_gauss`), the
+    others are 0 as the whole blur would make them (0 under the whole kernel).
+    """
+    if sigma <= 0:
+        return stack
+    near = _row_segments(busy, _halo(sigma)) if sigma <= ROW_BANDS_MAX_SIGMA else None
+    if near is None:
+        return _gauss(stack, sigma)
+    blurred = np.zeros_like(stack)
+    run_tasks(*(functools.partial(_gauss_rows, stack, sigma, _halo(sigma), blurred, r0, r1)
+                for r0, r1 in near))  # fmt: skip
+    return blurred
 
 
 def _gauss_rows(img, sigma, halo, out, r0, r1):
