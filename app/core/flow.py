@@ -182,12 +182,15 @@ CALIBRATED_BLUR_REL_ERROR = 0.05
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
 def _sweeps(
-    grids, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
+    grids, intervals, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
     static_factor, static_margin, blur_known, blur_rel_error, still_depth, periodic, todo,
     sweeps, moving_at, pitch, interval_ratio, banded, sens, why, i0, i1,
 ):  # fmt: skip
     """Per grid pixel and pattern: the sweep in line-index units ``L / B`` (see FlowModel.combine).
+
+    The line intervals ``B`` are read from ``intervals`` (``(2, h, w)``), the other
+    fields from ``grids``.
 
     ``moving_at[p]``: the sweep (index units) above which the line clearly moves;
     ``banded``: 1 where both patterns have a band (moving or not), else 0;
@@ -217,8 +220,8 @@ def _sweeps(
                 sweeps[p, i, j] = np.nan
                 moving_at[p, i, j] = np.nan
                 sens[p, i, j] = 0.0
-            B0 = grids[0, 1, i, j]
-            B1 = grids[1, 1, i, j]
+            B0 = intervals[0, i, j]
+            B1 = intervals[1, i, j]
             if not (B0 > 0.0 and B1 > 0.0):
                 why[i, j] = cz.NO_LINES
                 continue
@@ -235,7 +238,7 @@ def _sweeps(
                 u = u_of[k] + (t - k) * (u_of[k + 1] - u_of[k])
             for p in range(2):
                 m = grids[p, 0, i, j]
-                B = grids[p, 1, i, j]
+                B = intervals[p, i, j]
                 slant = grids[p, 3, i, j]
                 if not np.isfinite(slant):
                     slant = 0.0
@@ -355,7 +358,7 @@ def _pack(sweeps, banded, interval_ratio, single, stack, busy, i0, i1):
 @nb.njit(cache=True, error_model="numpy", nogil=True)
 def _decide(
     sweeps, blurred, moving_at, pitch, interval_ratio, single, still_depth, outlier, share,
-    sens, grids, cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, i0, i1,
+    sens, intervals, cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, i0, i1,
 ):  # fmt: skip
     """Moving test on the averaged sweeps, then the log ratio, the flows (projector px)
     and the log ratio's expected error.
@@ -400,7 +403,7 @@ def _decide(
                         why[i, j] = cz.INCONSISTENT
                 moving = why[i, j] == cz.DEPTH
             # independent bands in the kernel: valid cells, of which B / stride share a band
-            interval = 0.5 * (grids[0, 1, i, j] + grids[1, 1, i, j])
+            interval = 0.5 * (intervals[0, i, j] + intervals[1, i, j])
             if moving:
                 s0 = blurred[i, j, 0] / den
                 s1 = blurred[i, j, 1] / den
@@ -571,10 +574,13 @@ class FlowModel:
         read again is no longer measurable, the first reading stands, its ``L / B``
         over the predicted interval.  ``periodic``: as for :meth:`combine`.
         """
-        fixed = grids.copy()
-        fixed[:, 1] *= np.exp(-fix)
+        # only the intervals change: the other fields are read from ``grids`` (a copy of
+        # them all cost 1.1 ms).  A view of a larger buffer, like ``grids[:, 1]``: the
+        # kernels are compiled for one array layout
+        fixed = np.empty((2, 2, *grids.shape[2:]))[:, 0]
+        np.multiply(grids[:, 1], np.exp(-fix), out=fixed)
         # a cell without a correction reads as before (the same inputs): not read again
-        second = self.recombine(fixed, params, periodic, first, (fix != 0).any(axis=0))
+        second = self.recombine(grids, params, periodic, first, (fix != 0).any(axis=0), fixed)
         again = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
         log_ratio = np.where(again, second.log_ratio, first.log_ratio + fix[0] - fix[1])
         flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
@@ -584,13 +590,15 @@ class FlowModel:
 
     def recombine(self, grids: np.ndarray, params: FlowParams,
                   periodic: np.ndarray | None = None, first: FlowMaps | None = None,
-                  todo: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
+                  todo: np.ndarray | None = None,
+                  intervals: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
         """:meth:`combine` without touching the blur model (for :meth:`reread`).
 
         With ``first`` (a :class:`FlowMaps` of these cells, with its readings) and
         ``todo`` (bool per cell), only the cells in ``todo`` are read from ``grids``; the
         others keep their readings, and where no cell read again reaches, the decision
-        of ``first``.
+        of ``first``.  ``intervals`` (``(2, h, w)``, a view like ``grids[:, 1]``) replaces
+        the line intervals of ``grids``.
         """
         tab = tables()
         still = self.still_depth(params)
@@ -611,11 +619,13 @@ class FlowModel:
                 a.copy() for a in first.readings)  # fmt: skip
         if todo is None:
             todo = np.ones((gh, gw), np.bool_)
+        if intervals is None:
+            intervals = grids[:, 1]
         measured = self.blur_measured
         # bands of grid rows on a thread per core (the kernels release the GIL)
         run_rows(
-            _sweeps, gh, grids, self.kinds, self.steps, self.widths, self.line_px, self.blur,
-            self.single,
+            _sweeps, gh, grids, intervals, self.kinds, self.steps, self.widths, self.line_px,
+            self.blur, self.single,
             self._u_lo, self._u_step, self._u_of, tab.joint, tab.inverse, S_AXIS[0],
             S_AXIS[1] - S_AXIS[0], W_STEP, M_STEP, R_STEP, L_AXIS[-1] - 1.0,
             params.measure_factor, params.measure_margin_px,
@@ -642,7 +652,7 @@ class FlowModel:
         def decide(blurred, *outputs):
             # _decide's arguments: the readings, then the outputs (rows follow)
             return (sweeps, blurred, moving_at, pitch, interval_ratio, self.single, still,
-                    params.sweep_outlier, params.measured_share, sens, grids, cells,
+                    params.sweep_outlier, params.measured_share, sens, intervals, cells,
                     *outputs)  # fmt: skip
 
         near = None
