@@ -149,6 +149,38 @@ class FlowMaps:
     swept: np.ndarray
     readings: tuple | None = None
 
+    def screen(self, depth, slope, noise_gain, floor_var, max_rel_std):
+        """Drop the cells whose depth is out of range or too uncertain; their predicted variance.
+
+        The predicted error of a cell's log ratio is ``lr_var * noise_gain + lr_sys ** 2
+        + floor_var`` (a variance); times the depth's slope it is the depth's.  One
+        pass over the maps (the numpy expressions it replaces cost a temporary each).
+        :attr:`why` is updated in place: ``DEPTH_RANGE`` where a finite log ratio has
+        no depth, then ``UNCERTAIN`` where the depth's error is too large.
+
+        Parameters
+        ----------
+        depth, slope : numpy.ndarray
+            ``(h, w)`` float32: the depth of :attr:`log_ratio` and ``|dz / dlog_ratio|``
+            (:func:`lightflow.app.core.depth_model.depth_and_slope`).
+        noise_gain, floor_var, max_rel_std : float
+            Scale of :attr:`lr_var`, the variance added, and the largest depth error
+            kept, as a share of the depth.
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray)
+            ``(h, w)`` float32: the log ratio where it has a certain enough depth, else
+            NaN, and the depth's predicted variance (m^2) on every cell.
+        """
+        kept = np.empty(self.log_ratio.shape, np.float32)
+        variance = np.empty(self.log_ratio.shape, np.float32)
+        # float32 constants: numpy multiplies a float32 map by a Python float in float32
+        run_rows(_screen, kept.shape[0], self.log_ratio, depth, slope, self.lr_var, self.lr_sys,
+                 np.float32(noise_gain), np.float32(floor_var), np.float32(max_rel_std),
+                 self.why, kept, variance)  # fmt: skip
+        return kept, variance
+
 
 #: the per-band ramp solve of :func:`fit_blur` comes out about 10 % low in sigma (noisy
 #: ramps through a non-linear inverse); short sweeps read with too small a blur come out
@@ -428,6 +460,28 @@ def _decide(
             log_ratio[i, j] = interval_ratio[i, j]
             lr_var[i, j] = max(blurred[i, j, 5] / den_ir - ir * ir, 0.0) / n
             lr_sys[i, j] = 0.0
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _screen(raw, depth, slope, lr_var, lr_sys, noise_gain, floor_var, max_rel_std, why, kept,
+            variance, i0, i1):  # fmt: skip
+    """:meth:`FlowMaps.screen` on grid rows ``i0 .. i1`` (float32 throughout, as numpy
+    computes a float32 map with Python floats)."""
+    gw = raw.shape[1]
+    nan = np.float32(np.nan)
+    for i in range(i0, i1):
+        for j in range(gw):
+            r = raw[i, j]
+            z = depth[i, j]
+            if np.isfinite(r) and not np.isfinite(z):
+                why[i, j] = cz.DEPTH_RANGE
+            v = lr_var[i, j] * noise_gain + lr_sys[i, j] * lr_sys[i, j] + floor_var
+            std = np.sqrt(v) * slope[i, j]
+            uncertain = std > max_rel_std * z
+            if uncertain:
+                why[i, j] = cz.UNCERTAIN
+            kept[i, j] = r if np.isfinite(z) and not uncertain else nan
+            variance[i, j] = std * std
 
 
 def still_lines(grids: np.ndarray, previous: np.ndarray) -> np.ndarray:
