@@ -174,11 +174,13 @@ class IntervalModel:
         for p in range(2):  # the sparse pattern of each cell (mostly one pattern)
             if not have[p].any():
                 continue
-            mean = _local_mean(lg[p], have[p])
+            # the weights' blur serves the mean and the test of what is near (once)
+            weight = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS)
+            mean = _local_mean(lg[p], have[p], weight)
             # soft: the part beyond the tolerance, so the correction has no step where
             # the disagreement crosses it (a step reads as an outlier to the smoothing)
             soft = np.sign(mean) * np.maximum(np.abs(mean) - DISAGREE_LOG, 0.0)
-            near = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS) >= NEAR_WEIGHT
+            near = weight >= NEAR_WEIGHT
             out[p] = np.where(near & np.isfinite(intervals[p]), soft, 0.0)
         return out
 
@@ -263,11 +265,14 @@ class IntervalModel:
             return np.abs(side / b - 1.0) > CURVED
 
 
-def _local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Gaussian mean of ``values`` (0 where ``weights`` is 0) over :data:`SMOOTH_CELLS`."""
+def _local_mean(values: np.ndarray, weights: np.ndarray,
+                blurred_weights: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """Gaussian mean of ``values`` (0 where ``weights`` is 0) over :data:`SMOOTH_CELLS`
+    (``blurred_weights``: the blur of ``weights``, when the caller has it)."""
+    if blurred_weights is None:
+        blurred_weights = cv2.GaussianBlur(weights, (0, 0), SMOOTH_CELLS)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (cv2.GaussianBlur(values, (0, 0), SMOOTH_CELLS)
-                / cv2.GaussianBlur(weights, (0, 0), SMOOTH_CELLS))  # fmt: skip
+        return cv2.GaussianBlur(values, (0, 0), SMOOTH_CELLS) / blurred_weights
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
