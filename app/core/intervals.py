@@ -250,19 +250,50 @@ class IntervalModel:
         B(x)``.  On a plane the intervals change linearly and that is 0; where the
         dense pattern shows it above :data:`CURVED`, the surface bends.
         """
-        dense = np.where(np.isfinite(intervals[1 - sparse]), intervals[1 - sparse], 0.0)
-        b = _local_mean(dense.astype(np.float32), (dense > 0).astype(np.float32))
+        dense = intervals[1 - sparse]
+        values = np.empty(dense.shape, np.float32)
+        weights = np.empty(dense.shape, np.float32)
+        run_rows(_dense_inputs, dense.shape[0], dense, values, weights)
+        b = _local_mean(values, weights)
         h = int(round(sparse_interval / (2 * self.stride)))
         if h < 1 or 2 * h >= b.shape[1]:
             return np.zeros(b.shape, bool)
-        side = np.full(b.shape, np.nan, np.float32)
-        side[:, h:-h] = 0.5 * (b[:, : -2 * h] + b[:, 2 * h :])
-        # both sides measured: across a gap (an object's edge) may be another surface,
-        # whose intervals are no bend of this one
-        valid = dense > 0
-        side[:, h:-h][~(valid[:, : -2 * h] & valid[:, 2 * h :])] = np.nan
-        with np.errstate(invalid="ignore"):
-            return np.abs(side / b - 1.0) > CURVED
+        out = np.empty(b.shape, np.bool_)
+        run_rows(_bends, b.shape[0], dense, b, h, CURVED, out)
+        return out
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _dense_inputs(dense, values, weights, i0, i1):
+    """``values``: the dense intervals in float32, 0 where not finite; ``weights``: 1 where
+    they are positive, else 0 (grid rows ``i0 .. i1``)."""
+    w = dense.shape[1]
+    for i in range(i0, i1):
+        for j in range(w):
+            x = dense[i, j]
+            finite = np.isfinite(x)
+            values[i, j] = np.float32(x) if finite else np.float32(0.0)
+            weights[i, j] = np.float32(1.0) if finite and x > 0.0 else np.float32(0.0)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _bends(dense, b, h, curved, out, i0, i1):
+    """:meth:`IntervalModel._curved`'s test on grid rows ``i0 .. i1``: the mean of ``b``
+    ``h`` cells either side against ``b`` (float32, as numpy computed it)."""
+    w = b.shape[1]
+    for i in range(i0, i1):
+        for j in range(w):
+            out[i, j] = False
+            if j < h or j >= w - h:
+                continue
+            # both sides measured: across a gap (an object's edge) may be another surface,
+            # whose intervals are no bend of this one
+            left = dense[i, j - h]
+            right = dense[i, j + h]
+            if not (np.isfinite(left) and left > 0.0 and np.isfinite(right) and right > 0.0):
+                continue
+            side = np.float32(0.5) * (b[i, j - h] + b[i, j + h])
+            out[i, j] = abs(side / b[i, j] - np.float32(1.0)) > curved
 
 
 def _local_mean(values: np.ndarray, weights: np.ndarray,
