@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numba as nb
@@ -218,13 +218,25 @@ class DepthLUT:
     h0, inv_dh : numpy.ndarray
         ``(h, w)`` float32: first h of the table and 1 / step (0 where unusable).
     table : numpy.ndarray
-        ``(h, w, M)`` float32 inverse depths 1/z (smoother in h than z).
+        ``(h, w, M)`` float32 inverse depths 1/z (smoother in h than z); a view of
+        :attr:`planes`.
+    planes : numpy.ndarray
+        The same values sample-major, ``(M, h, w)`` (made from ``table``): what the
+        lookup reads.  A smooth surface reads the same few samples over many
+        neighbouring pixels, so the lookup streams about 4 of the M planes instead
+        of every pixel's whole row (0.9 -> 0.6 ms per lookup on a board).
     """
 
     stride: int
     h0: np.ndarray
     inv_dh: np.ndarray
     table: np.ndarray
+    planes: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        # one copy of the samples (184 MB at stride 1): ``table`` becomes a view of it
+        self.planes = np.ascontiguousarray(np.moveaxis(self.table, 2, 0))
+        self.table = np.moveaxis(self.planes, 0, 2)
 
     @property
     def nbytes(self) -> int:
@@ -339,18 +351,18 @@ def load_or_build_lut(
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
-def _spline_at(row, t):
-    """Catmull-Rom through the uniform samples ``row`` (clamped ends) at ``t``.
+def _spline_at(planes, i, j, t):
+    """Catmull-Rom through the uniform samples ``planes[:, i, j]`` (clamped ends) at ``t``.
 
     Returns the value and its derivative in ``t``.
     """
-    m = row.shape[0]
+    m = planes.shape[0]
     j1 = min(int(t), m - 2)
     f = t - j1
-    p1 = row[j1]
-    p2 = row[j1 + 1]
-    p0 = row[j1 - 1] if j1 > 0 else 2 * p1 - p2
-    p3 = row[j1 + 2] if j1 + 2 < m else 2 * p2 - p1
+    p1 = planes[j1, i, j]
+    p2 = planes[j1 + 1, i, j]
+    p0 = planes[j1 - 1, i, j] if j1 > 0 else 2 * p1 - p2
+    p3 = planes[j1 + 2, i, j] if j1 + 2 < m else 2 * p2 - p1
     a = p2 - p0
     b = 2 * p0 - 5 * p1 + 4 * p2 - p3
     c = 3 * (p1 - p2) + p3 - p0
@@ -358,11 +370,12 @@ def _spline_at(row, t):
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
-def _lookup(logr, h0, inv_dh, table, z, slope, i0, i1):
+def _lookup(logr, h0, inv_dh, planes, z, slope, i0, i1):
     """Depth at ``logr`` on grid rows ``i0 .. i1``; also ``|dz / dlogr|`` unless
-    ``slope`` is empty.  Each pixel's table row is read once."""
+    ``slope`` is empty (``planes``: :attr:`DepthLUT.planes`).  Each pixel's samples are
+    read once."""
     gw = logr.shape[1]
-    m = table.shape[2]
+    m = planes.shape[0]
     want_slope = slope.size > 0
     for i in range(i0, i1):
         for j in range(gw):
@@ -376,7 +389,7 @@ def _lookup(logr, h0, inv_dh, table, z, slope, i0, i1):
             t = (h - h0[i, j]) * k
             if t < 0.0 or t > m - 1:
                 continue
-            inv_z, d_inv_z = _spline_at(table[i, j], t)
+            inv_z, d_inv_z = _spline_at(planes, i, j, t)
             zz = 1.0 / inv_z
             z[i, j] = zz
             if want_slope:
@@ -425,5 +438,5 @@ def _run_lookup(lut: DepthLUT, log_ratio: np.ndarray, with_slope: bool):
     z = np.empty(logr.shape, np.float32)
     slope = np.empty(logr.shape if with_slope else (0, 0), np.float32)
     # bands of grid rows on a thread per core (the kernel releases the GIL)
-    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.table, z, slope)
+    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.planes, z, slope)
     return (z, slope) if with_slope else z

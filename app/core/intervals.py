@@ -136,7 +136,9 @@ class IntervalModel:
         both = np.isfinite(sample).all(axis=0)
         if np.count_nonzero(both) < 16:
             return np.zeros(intervals.shape[1:], bool)
-        med = np.median(sample[:, both], axis=1)
+        # one pattern at a time: indexing both at once with the mask cost more than the
+        # medians (0.4 -> 0.27 ms; the same values)
+        med = [np.median(sample[p][both]) for p in range(2)]
         sparse = int(med[1] > med[0])
         return self._curved(intervals, sparse, float(med[sparse]))
 
@@ -172,11 +174,13 @@ class IntervalModel:
         for p in range(2):  # the sparse pattern of each cell (mostly one pattern)
             if not have[p].any():
                 continue
-            mean = _local_mean(lg[p], have[p])
+            # the weights' blur serves the mean and the test of what is near (once)
+            weight = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS)
+            mean = _local_mean(lg[p], have[p], weight)
             # soft: the part beyond the tolerance, so the correction has no step where
             # the disagreement crosses it (a step reads as an outlier to the smoothing)
             soft = np.sign(mean) * np.maximum(np.abs(mean) - DISAGREE_LOG, 0.0)
-            near = cv2.GaussianBlur(have[p], (0, 0), SMOOTH_CELLS) >= NEAR_WEIGHT
+            near = weight >= NEAR_WEIGHT
             out[p] = np.where(near & np.isfinite(intervals[p]), soft, 0.0)
         return out
 
@@ -246,26 +250,60 @@ class IntervalModel:
         B(x)``.  On a plane the intervals change linearly and that is 0; where the
         dense pattern shows it above :data:`CURVED`, the surface bends.
         """
-        dense = np.where(np.isfinite(intervals[1 - sparse]), intervals[1 - sparse], 0.0)
-        b = _local_mean(dense.astype(np.float32), (dense > 0).astype(np.float32))
+        dense = intervals[1 - sparse]
+        values = np.empty(dense.shape, np.float32)
+        weights = np.empty(dense.shape, np.float32)
+        run_rows(_dense_inputs, dense.shape[0], dense, values, weights)
+        b = _local_mean(values, weights)
         h = int(round(sparse_interval / (2 * self.stride)))
         if h < 1 or 2 * h >= b.shape[1]:
             return np.zeros(b.shape, bool)
-        side = np.full(b.shape, np.nan, np.float32)
-        side[:, h:-h] = 0.5 * (b[:, : -2 * h] + b[:, 2 * h :])
-        # both sides measured: across a gap (an object's edge) may be another surface,
-        # whose intervals are no bend of this one
-        valid = dense > 0
-        side[:, h:-h][~(valid[:, : -2 * h] & valid[:, 2 * h :])] = np.nan
-        with np.errstate(invalid="ignore"):
-            return np.abs(side / b - 1.0) > CURVED
+        out = np.empty(b.shape, np.bool_)
+        run_rows(_bends, b.shape[0], dense, b, h, CURVED, out)
+        return out
 
 
-def _local_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Gaussian mean of ``values`` (0 where ``weights`` is 0) over :data:`SMOOTH_CELLS`."""
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _dense_inputs(dense, values, weights, i0, i1):
+    """``values``: the dense intervals in float32, 0 where not finite; ``weights``: 1 where
+    they are positive, else 0 (grid rows ``i0 .. i1``)."""
+    w = dense.shape[1]
+    for i in range(i0, i1):
+        for j in range(w):
+            x = dense[i, j]
+            finite = np.isfinite(x)
+            values[i, j] = np.float32(x) if finite else np.float32(0.0)
+            weights[i, j] = np.float32(1.0) if finite and x > 0.0 else np.float32(0.0)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _bends(dense, b, h, curved, out, i0, i1):
+    """:meth:`IntervalModel._curved`'s test on grid rows ``i0 .. i1``: the mean of ``b``
+    ``h`` cells either side against ``b`` (float32, as numpy computed it)."""
+    w = b.shape[1]
+    for i in range(i0, i1):
+        for j in range(w):
+            out[i, j] = False
+            if j < h or j >= w - h:
+                continue
+            # both sides measured: across a gap (an object's edge) may be another surface,
+            # whose intervals are no bend of this one
+            left = dense[i, j - h]
+            right = dense[i, j + h]
+            if not (np.isfinite(left) and left > 0.0 and np.isfinite(right) and right > 0.0):
+                continue
+            side = np.float32(0.5) * (b[i, j - h] + b[i, j + h])
+            out[i, j] = abs(side / b[i, j] - np.float32(1.0)) > curved
+
+
+def _local_mean(values: np.ndarray, weights: np.ndarray,
+                blurred_weights: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """Gaussian mean of ``values`` (0 where ``weights`` is 0) over :data:`SMOOTH_CELLS`
+    (``blurred_weights``: the blur of ``weights``, when the caller has it)."""
+    if blurred_weights is None:
+        blurred_weights = cv2.GaussianBlur(weights, (0, 0), SMOOTH_CELLS)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (cv2.GaussianBlur(values, (0, 0), SMOOTH_CELLS)
-                / cv2.GaussianBlur(weights, (0, 0), SMOOTH_CELLS))  # fmt: skip
+        return cv2.GaussianBlur(values, (0, 0), SMOOTH_CELLS) / blurred_weights
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

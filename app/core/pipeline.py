@@ -449,20 +449,16 @@ class DepthPipeline:
                 fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)
                 raw = fm.log_ratio  # same cells, same causes
                 z_raw, dz_dh = depth_and_slope(self.lut, raw)
-        why[np.isfinite(raw) & ~np.isfinite(z_raw)] = cz.DEPTH_RANGE
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
         # the final smoothing averages the random part further (by its kernel area)
         gain = min(1.0, (sigma_s / sigma_f) ** 2) if sigma_f > 0 else 1.0
-        with np.errstate(invalid="ignore"):
-            lr_var = fm.lr_var * (NOISE_SCALE**2 * gain) + fm.lr_sys**2 + LOG_RATIO_FLOOR**2
-            std = np.sqrt(lr_var) * dz_dh
-            uncertain = std > cfg.max_depth_std * z_raw
-        why[uncertain] = cz.UNCERTAIN
-        raw = np.where(np.isfinite(z_raw) & ~uncertain, raw, np.nan)
+        # out of range or too uncertain: no depth
+        raw, depth_var = fm.screen(z_raw, dz_dh, NOISE_SCALE**2 * gain, LOG_RATIO_FLOOR**2,
+                                   cfg.max_depth_std)  # fmt: skip
         # the predicted variance is smoothed with the log ratio, over the same pixels
         log_ratio, var_grid = smooth_log_ratio(
-            raw, sigma_f, cfg.flow.outlier_sigmas, cfg.flow.fill_fraction, std * std,
+            raw, sigma_f, cfg.flow.outlier_sigmas, cfg.flow.fill_fraction, depth_var,
         )  # fmt: skip
         std_grid = np.sqrt(var_grid)
         t4 = time.perf_counter()
