@@ -61,6 +61,7 @@ What the stretch alone gives, and what it does not:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -603,8 +604,10 @@ def measure_stretches(
     n = row.shape[0]
 
     def vec(v, fill=np.nan):
+        # always a writeable contiguous copy: broadcast views are read-only, and a kernel
+        # compiles once per such flag (a live frame's first call would compile again)
         v = fill if v is None else v
-        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (n,)))
+        return np.require(np.broadcast_to(np.asarray(v, np.float64), (n,)), None, ["C", "W"])
 
     out = np.empty((n, N_OUT))
     lo = np.asarray(lo, np.int64)
@@ -658,6 +661,10 @@ def refine_interval(x, lo: int, hi: int, B0: float, rel_range: float = 0.1,
 #: fewest neighbouring overlap-rejected bands of a row measured as one periodic stretch
 #: (the stretch spans one interval more than their centres: three bands, three intervals)
 MIN_RUN_BANDS = 3
+#: runs of overlap-rejected bands twice this long or longer are measured in pieces of this
+#: many bands or more (their sweep changes along the row: a board's 60-97 % of the interval
+#: across the image read -8 to +5 % as one stretch, within 2 % in pieces)
+RUN_PIECE_BANDS = 5
 #: how far (line intervals) beyond each end of a run its background is looked for, as the
 #: band detector looks for the floor (:data:`~lightflow.app.core.bands.FLOOR_GAPS` gaps)
 FLOOR_REACH = FLOOR_GAPS
@@ -671,6 +678,16 @@ CONTINUATION_TOLERANCE = 0.3
 #: (line intervals) a band's link to the next row reaches (as the slant's links)
 FLOOD_PASSES = 2
 FLOOD_REACH = 0.3
+#: passes of :func:`_measure_floorless` along the rows: each measures the runs of touching
+#: bands next to a band measured before (one run of 3-5 bands further per pass)
+FLOORLESS_PASSES = 4
+#: how far (line intervals) from a run's end band the measured band that gives it its
+#: ``L / B`` may be, and by how much the measured bands on its two sides may disagree
+FLOORLESS_REACH = 1.6
+FLOORLESS_AGREE = 0.2
+#: their sweeps' largest predicted relative standard deviation (their bands touch: the
+#: pulse shape is measured less well than a run's beside a clean gap)
+FLOORLESS_MAX_REL_STD = 0.04
 #: largest deviation of a run's centre spacings from their median (share of it): the
 #: pulses of overlapping bands are exactly periodic on a smooth surface
 RUN_SPACING_TOLERANCE = 0.1
@@ -687,8 +704,11 @@ TIGHT_GAP_SIGMAS = 3.0
 
 
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
-def _find_runs(bands, counts, min_bands, runs):
-    """Runs of at least ``min_bands`` neighbouring overlap-rejected bands with centres.
+def _find_runs(bands, counts, min_bands, runs, piece=1 << 30):
+    """Runs of at least ``min_bands`` neighbouring overlap-rejected bands with centres, runs
+    of ``2 piece`` or more cut into pieces of ``piece`` to ``2 piece - 1`` bands (the sweep
+    and the interval change along a long run, a stretch's must not; a short piece at a
+    run's end would be measured less well: its stretch reaches past the run).
 
     ``runs[m] = (row, first band, last band)``; returns the number of runs.
     """
@@ -704,11 +724,14 @@ def _find_runs(bands, counts, min_bands, runs):
             while (j + 1 < n and bands[r, j + 1, F_VALID] == BAND_OVERLAP
                    and np.isfinite(bands[r, j + 1, F_CENTRE])):  # fmt: skip
                 j += 1
-            if j - k + 1 >= min_bands and m < runs.shape[0]:
-                runs[m, 0] = r
-                runs[m, 1] = k
-                runs[m, 2] = j
-                m += 1
+            if j - k + 1 >= min_bands:
+                for first in range(k, j + 2 - piece if j - k + 1 >= piece else k + 1, piece):
+                    if m == runs.shape[0]:
+                        break
+                    runs[m, 0] = r
+                    runs[m, 1] = first
+                    runs[m, 2] = first + piece - 1 if j - first + 1 >= 2 * piece else j
+                    m += 1
             k = j + 1
     return m
 
@@ -869,6 +892,14 @@ def warm_up(params: OverlapParams | None = None) -> None:
     _flood_trains(bands, counts, one, runs, one, B, prep[:, 4] * B, CONTINUATION_TOLERANCE,
                   FLOOD_REACH, FLOOD_PASSES, member)  # fmt: skip
     _find_member_runs(bands, counts, member, MIN_RUN_BANDS, np.empty((1, 5), np.int64))
+    # a long run of touching bands measured again in pieces (none measurable here)
+    long = np.full((2, 1, 2 * RUN_PIECE_BANDS, N_FIELDS), np.nan)
+    long[:, 0, :, F_CENTRE] = 20.0 * np.arange(1, 2 * RUN_PIECE_BANDS + 1)
+    long[:, 0, :, F_VALID] = BAND_PERIODIC
+    _measure_pieces(np.zeros((2, 20 * (2 * RUN_PIECE_BANDS + 1))), one, long, one,
+                    np.array([[0, 0, 2 * RUN_PIECE_BANDS - 1]], np.int64), np.full(1, 0.5),
+                    np.ones(2), np.ones(2), np.ones((2, 2)),
+                    OverlapParams() if params is None else params, long.shape[2] * 20)  # fmt: skip
 
 
 def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
@@ -994,6 +1025,13 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
         out[past[keep]] = alone[keep]
     done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & ~tight)
     _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B, True)
+    # a long run of touching bands is one stretch so far, but its sweep changes along the
+    # row (perspective): measured again in pieces, with the run's L / B as the reference
+    long = done[(out[done, O_TURNS] == 0)
+                & (runs[done, 2] - runs[done, 1] + 1 >= 2 * RUN_PIECE_BANDS)]  # fmt: skip
+    if len(long):
+        _measure_pieces(signals, row[long], bands, pat[long], runs[long],
+                        out[long, O_SWEEP] / B[long], line_px, pitch, blur, params, width)
     # past the ends of a run swept past its neighbours, bands that continue its pulse train
     # are more of its pulses that the detector took for bands (no clean gap showed the
     # floor near them): rejected, not measured whole intervals short
@@ -1013,6 +1051,10 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
                       CONTINUATION_TOLERANCE, FLOOD_REACH, FLOOD_PASSES, member)  # fmt: skip
         flooded = _measure_flooded(image, weights, row_y, bands, counts, member,
                                    out[:, O_SWEEP] / B, line_px, pitch, blur, params)  # fmt: skip
+    # runs of touching bands with no clean gap within reach have no floor: the measured
+    # bands beside them in their row give their L / B, a run further per pass
+    floorless = _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
+                                   params)  # fmt: skip
     # tight runs last: the pulses of a train far from any clean gap look like tight valid
     # bands (and their floor like n = 0); those continuing a measured train are rejected
     # by now, and a tight run that holds one is not measured
@@ -1024,7 +1066,146 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     codes = bands[pat[measured, None], runs[measured, 0:1], np.minimum(k, last), F_VALID]
     still = np.all((k > last) | (codes == BAND_VALID), axis=1)
     _mark_runs(bands, pat, runs, measured[still], out[:, O_SWEEP], B, True)
-    return len(done) + int(np.count_nonzero(still)) + flooded
+    return len(done) + int(np.count_nonzero(still)) + flooded + floorless
+
+
+def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
+                    params: OverlapParams, width: int) -> None:
+    """Measure each run of ``runs`` again in pieces of :data:`RUN_PIECE_BANDS` to twice that
+    many bands, with the run's ``L / B`` (``prior``) as the reference for ``n``; the pieces
+    measured get their own sweep and spacing, the others are rejected."""
+    pieces, owner = [], []
+    for q in range(len(runs)):
+        r, k0, k1 = (int(v) for v in runs[q])
+        for first in range(k0, k1 + 2 - RUN_PIECE_BANDS, RUN_PIECE_BANDS):
+            last = first + RUN_PIECE_BANDS - 1 if k1 - first + 1 >= 2 * RUN_PIECE_BANDS else k1
+            pieces.append((r, first, last))
+            owner.append(q)
+    pieces = np.array(pieces, np.int64).reshape(-1, 3)
+    owner = np.array(owner, np.int64)
+    prep = np.empty((len(pieces), 6))
+    for p in range(2):
+        sel = np.flatnonzero(pat[owner] == p)
+        if len(sel):
+            part = np.empty((len(sel), 6))
+            _prepare_runs(bands[p], np.ascontiguousarray(pieces[sel]), len(sel),
+                          RUN_SPACING_TOLERANCE, width, part)  # fmt: skip
+            prep[sel] = part
+    ok = np.flatnonzero(np.isfinite(prep[:, 0]))
+    if len(ok) == 0:
+        return
+    pp = pat[owner[ok]]
+    prep = prep[ok]
+    B = prep[:, 0]  # a column, as measure_runs passes it (the kernels compile for that layout)
+    mag = B / pitch[pp]
+    sigma = np.sqrt(np.maximum(blur[pp, 0] + blur[pp, 1] * mag * mag, 0.01))
+    out = measure_stretches(signals, row[owner[ok]], prep[:, 1].astype(np.int64),
+                            prep[:, 2].astype(np.int64), B, line_px[pp] * mag, sigma,
+                            prior=prior[owner[ok]], params=params)  # fmt: skip
+    done = (out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
+    _mark_runs(bands, pp, np.ascontiguousarray(pieces[ok]), np.flatnonzero(done),
+               out[:, O_SWEEP], B, True)  # fmt: skip
+    # a piece that cannot be measured (near an integer L / B) is rejected: the run's sweep
+    # is its average, several per cent off at its ends
+    for i in np.flatnonzero(~done):
+        r, first, last = pieces[ok[i]]
+        bands[pp[i], r, first : last + 1, F_VALID] = BAND_OVERLAP
+
+
+def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
+                       params: OverlapParams) -> int:  # fmt: skip
+    """Measure the runs of overlap-rejected bands that are still rejected, with the ``L / B``
+    of the measured bands beside them in their row as the reference for ``n``; returns the
+    number measured.
+
+    Where a surface's bands touch over a wide stretch (a board whose sweep approaches the
+    interval), no clean gap within reach shows the floor, so :func:`measure_runs` could not
+    tell ``n`` for them.  The sweep changes smoothly along a row, so the nearest measured
+    band (valid, or periodic: measured in an earlier pass) within :data:`FLOORLESS_REACH`
+    intervals of the run's end, on either side, gives its ``L / B``; where both sides have
+    one they must agree within :data:`FLOORLESS_AGREE`, else the run stays rejected (an
+    edge between two surfaces).  :func:`measure_stretch` then keeps ``n`` only where the
+    reference lies within 0.3 intervals of a candidate, and only bands that touch (``n =
+    0`` and a gap narrower than :data:`TIGHT_GAP_SIGMAS` blur sigmas) are kept.
+    """
+    measured = 0
+    width = image.shape[1]
+    signals: dict[int, np.ndarray] = {}
+    params = dataclasses.replace(params, max_rel_std=max(params.max_rel_std,
+                                                         FLOORLESS_MAX_REL_STD))  # fmt: skip
+    for _ in range(FLOORLESS_PASSES):
+        parts = []
+        for p in range(2):
+            runs = np.empty((counts.shape[1] * 4, 3), np.int64)
+            m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs, RUN_PIECE_BANDS)
+            if m == 0:
+                continue
+            prep = np.empty((m, 6))
+            _prepare_runs(bands[p], runs, m, RUN_SPACING_TOLERANCE, width, prep)
+            prior = np.empty(m)
+            _row_priors(bands[p], counts[p], runs, m, FLOORLESS_REACH, FLOORLESS_AGREE, prior)
+            ok = np.isfinite(prep[:, 0]) & np.isfinite(prior)
+            if ok.any():
+                parts.append((p, runs[:m][ok], prep[ok], prior[ok]))
+        if not parts:
+            break
+        pat = np.concatenate([np.full(len(runs), p) for p, runs, _, _ in parts])
+        runs = np.concatenate([runs for _, runs, _, _ in parts])
+        prep = np.concatenate([prep for _, _, prep, _ in parts])
+        prior = np.concatenate([prior for _, _, _, prior in parts])
+        for r in np.unique(runs[:, 0]):
+            if int(r) not in signals:
+                signals[int(r)] = row_signals(image, int(row_y[r]), weights)
+        rows_used = np.array(sorted(signals))
+        stack = np.stack([signals[int(r)] for r in rows_used]).reshape(2 * len(rows_used), -1)
+        B = prep[:, 0]
+        mag = B / pitch[pat]
+        sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+        row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
+        out = measure_stretches(stack, row, prep[:, 1].astype(np.int64),
+                                prep[:, 2].astype(np.int64), B, line_px[pat] * mag, sigma,
+                                prior=prior, params=params)  # fmt: skip
+        # bands that touch (n = 0, no gap wider than TIGHT_GAP_SIGMAS blur sigmas) only: a
+        # train's pulses pass for valid bands where no floor is near (a whole number of
+        # intervals short), and their L / B would make a train read as short touching bands
+        gap = B - out[:, O_SWEEP] - line_px[pat] * mag
+        done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
+                              & (gap < TIGHT_GAP_SIGMAS * sigma))  # fmt: skip
+        if len(done) == 0:
+            break
+        _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B, True)
+        measured += len(done)
+    return measured
+
+
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+def _row_priors(bands, counts, runs, m, reach, agree, out):
+    """Per run of one pattern, the ``L / B`` of the nearest measured band (valid or
+    periodic, with an interval) in its row within ``reach`` intervals of its end bands, the
+    mean of the two sides' where both have one and they agree within ``agree``; NaN where
+    neither side has one or they disagree."""
+    for q in range(m):
+        r, k0, k1 = runs[q, 0], runs[q, 1], runs[q, 2]
+        n = counts[r]
+        sides = np.full(2, np.nan)
+        for side in range(2):
+            k = k0 - 1 if side == 0 else k1 + 1
+            end = bands[r, k0 if side == 0 else k1]
+            step = -1 if side == 0 else 1
+            while 0 <= k < n:
+                b = bands[r, k]
+                if abs(b[F_CENTRE] - end[F_CENTRE]) > reach * end[F_INTERVAL]:
+                    break
+                if (b[F_VALID] == BAND_VALID or b[F_VALID] == BAND_PERIODIC) and b[F_INTERVAL] > 0:
+                    sides[side] = b[F_LENGTH] / b[F_INTERVAL]
+                    break
+                k += step
+        if np.isfinite(sides[0]) and np.isfinite(sides[1]):
+            out[q] = 0.5 * (sides[0] + sides[1]) if abs(sides[0] - sides[1]) <= agree else np.nan
+        elif np.isfinite(sides[0]):
+            out[q] = sides[0]
+        else:
+            out[q] = sides[1]
 
 
 def _measure_flooded(image, weights, row_y, bands, counts, member, train_sweeps, line_px,
