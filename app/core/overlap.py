@@ -881,11 +881,12 @@ def warm_up(params: OverlapParams | None = None) -> None:
                  OverlapParams() if params is None else params)  # fmt: skip
     # the kernels only a measured train reaches (a frame's first train must not wait
     # seconds for them), on the same made-up bands: nothing continues, nothing is carried
-    # (the argument types and layouts of measure_runs' calls: B a column of a table)
+    # (the argument types and layouts of measure_runs' calls: B and the sweeps contiguous
+    # copies of a table's columns, as one row's column would be anyway)
     runs = np.array([[0, 0, 2]], np.int64)
     one = np.zeros(1, np.int64)
-    prep = np.ones((2, 6))  # two rows: a column of it is not contiguous
-    B = prep[:, 0]
+    prep = np.ones((2, 6))
+    B = np.ascontiguousarray(prep[:, 0])
     _reject_continuations(bands, counts, one, runs, one, B, prep[:, 4] * B,
                           CONTINUATION_TOLERANCE)  # fmt: skip
     member = np.full(bands.shape[:3], -1, np.int64)
@@ -989,7 +990,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     runs = np.concatenate([runs for _, runs, _, _ in parts])
     prep = np.concatenate([prep for _, _, prep, _ in parts])
     tight = np.concatenate([tight for _, _, _, tight in parts])
-    B = prep[:, 0]
+    B = np.ascontiguousarray(prep[:, 0])
     mag = B / pitch[pat]
     sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
     row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
@@ -1024,7 +1025,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
         keep = (alone[:, O_CODE] == OV_MEASURED) & (alone[:, O_TURNS] >= 1)
         out[past[keep]] = alone[keep]
     done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & ~tight)
-    _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B, True)
+    _mark_runs(bands, pat, runs, done, np.ascontiguousarray(out[:, O_SWEEP]), B, True)
     # a long run of touching bands is one stretch so far, but its sweep changes along the
     # row (perspective): measured again in pieces, with the run's L / B as the reference
     long = done[(out[done, O_TURNS] == 0)
@@ -1065,7 +1066,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     k = first + np.arange(2 * MIN_RUN_BANDS - 1)
     codes = bands[pat[measured, None], runs[measured, 0:1], np.minimum(k, last), F_VALID]
     still = np.all((k > last) | (codes == BAND_VALID), axis=1)
-    _mark_runs(bands, pat, runs, measured[still], out[:, O_SWEEP], B, True)
+    _mark_runs(bands, pat, runs, measured[still], np.ascontiguousarray(out[:, O_SWEEP]), B, True)
     return len(done) + int(np.count_nonzero(still)) + flooded + floorless
 
 
@@ -1096,7 +1097,7 @@ def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
         return
     pp = pat[owner[ok]]
     prep = prep[ok]
-    B = prep[:, 0]  # a column, as measure_runs passes it (the kernels compile for that layout)
+    B = np.ascontiguousarray(prep[:, 0])
     mag = B / pitch[pp]
     sigma = np.sqrt(np.maximum(blur[pp, 0] + blur[pp, 1] * mag * mag, 0.01))
     out = measure_stretches(signals, row[owner[ok]], prep[:, 1].astype(np.int64),
@@ -1104,7 +1105,7 @@ def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
                             prior=prior[owner[ok]], params=params)  # fmt: skip
     done = (out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
     _mark_runs(bands, pp, np.ascontiguousarray(pieces[ok]), np.flatnonzero(done),
-               out[:, O_SWEEP], B, True)  # fmt: skip
+               np.ascontiguousarray(out[:, O_SWEEP]), B, True)  # fmt: skip
     # a piece that cannot be measured (near an integer L / B) is rejected: the run's sweep
     # is its average, several per cent off at its ends
     for i in np.flatnonzero(~done):
@@ -1158,7 +1159,7 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
                 signals[int(r)] = row_signals(image, int(row_y[r]), weights)
         rows_used = np.array(sorted(signals))
         stack = np.stack([signals[int(r)] for r in rows_used]).reshape(2 * len(rows_used), -1)
-        B = prep[:, 0]
+        B = np.ascontiguousarray(prep[:, 0])
         mag = B / pitch[pat]
         sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
         row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
@@ -1173,7 +1174,7 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
                               & (gap < TIGHT_GAP_SIGMAS * sigma))  # fmt: skip
         if len(done) == 0:
             break
-        _mark_runs(bands, pat, runs, done, out[:, O_SWEEP], B, True)
+        _mark_runs(bands, pat, runs, done, np.ascontiguousarray(out[:, O_SWEEP]), B, True)
         measured += len(done)
     return measured
 
@@ -1236,7 +1237,7 @@ def _measure_flooded(image, weights, row_y, bands, counts, member, train_sweeps,
     signals = np.empty((2 * len(rows_used), image.shape[1]))
     for i, r in enumerate(rows_used):
         signals[2 * i : 2 * i + 2] = row_signals(image, int(row_y[r]), weights)
-    B = prep[:, 0]
+    B = np.ascontiguousarray(prep[:, 0])
     mag = B / pitch[pat]
     sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
     row = 2 * np.searchsorted(rows_used, found[:, 1]) + pat
@@ -1244,7 +1245,8 @@ def _measure_flooded(image, weights, row_y, bands, counts, member, train_sweeps,
                             prep[:, 2].astype(np.int64), B, line_px[pat] * mag, sigma,
                             prior=train_sweeps[found[:, 4]], params=params)  # fmt: skip
     done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
-    _mark_runs(bands, pat, np.ascontiguousarray(found[:, 1:4]), done, out[:, O_SWEEP], B, True)
+    _mark_runs(bands, pat, np.ascontiguousarray(found[:, 1:4]), done,
+               np.ascontiguousarray(out[:, O_SWEEP]), B, True)  # fmt: skip
     return len(done)
 
 

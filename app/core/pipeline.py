@@ -23,7 +23,7 @@ from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lu
 from .errors import ConfigError, FrameError
 from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
 from .intervals import IntervalModel
-from .profile_model import static_width_excess
+from .profile_model import static_width_excess, tables
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 from .snapping import LineSnapping, column_direction, desnap_intervals
@@ -330,6 +330,13 @@ class DepthPipeline:
         scratch = DepthPipeline(self.rig, self.config, lut=self.lut)
         # process() needs only these of a Frame (the core does not import drivers)
         scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
+        # the smoothing's outlier test needs 16 finite log ratios, which stripes do not give
+        ramp = np.linspace(-0.1, 0.1, 64, dtype=np.float32).reshape(8, 8)
+        smooth_log_ratio(ramp, 1.0, self.config.flow.outlier_sigmas,
+                         self.config.flow.fill_fraction, ramp * ramp)  # fmt: skip
+        # the blur fit and the still-line response read the tables through one more kernel,
+        # on the first frames that refit them (a rig without a measured blur)
+        tables().measured_width(np.zeros(1), np.ones(1), np.ones(1))
         if optional:
             self.warm_up_optional()
         if self.intervals is not None:
