@@ -150,6 +150,30 @@ def describe_response(pipeline) -> str:
     return f"camera response: linear ({source})"
 
 
+def describe_crosstalk(pipeline) -> str:
+    """One summary line: the colour crosstalk subtracted from the frames, and whence.
+
+    Estimated on the frames it needs clean gaps between the bands, which long sweeps
+    and dense patterns do not leave, so a run whose rig does not give it says how to
+    measure it.
+    """
+    values, source = pipeline.crosstalk
+    a, b = (pat.channel for _, pat in pipeline.rig.patterns)
+    shares = " and ".join(
+        f"the {name} channel sees {100 * v:.1f} % of the {other} light" if math.isfinite(v)
+        else f"not known for the {name} channel"
+        for v, name, other in ((values[0], a, b), (values[1], b, a))
+    )
+    if source == "option":
+        return f"colour crosstalk: {shares} (from the crosstalk option)"
+    if source == "rig":
+        return f"colour crosstalk: {shares} (measured, from the rig file)"
+    how = "`lightflow rig blur` measures it on still lines"
+    if source == "frames":
+        return f"colour crosstalk: {shares} (estimated on the frames; {how})"
+    return f"colour crosstalk: not known (no frame had clean gaps for it; taken as 0; {how})"
+
+
 #: ``RunStats.extra`` key prefix of the grid pixels without depth, summed over a run
 CAUSE_PREFIX = "no_depth:"
 

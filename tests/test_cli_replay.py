@@ -221,3 +221,18 @@ def test_the_summary_says_which_camera_response_was_used():
     assert line == "camera response: linear (from the rig file)"
     line = describe_response(DepthPipeline(rig, PipelineConfig(camera_gamma=2.2)))
     assert line == "camera response: gamma 2.2 (from --camera-gamma): frames linearised"
+
+
+def test_the_summary_says_which_colour_crosstalk_was_used():
+    from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.core.rig import resolve_rig
+    from lightflow.app.status import describe_crosstalk
+
+    rig = resolve_rig("two-projector").scaled(0.25)
+    line = describe_crosstalk(DepthPipeline(rig))
+    assert line.startswith("colour crosstalk: not known") and "lightflow rig blur" in line
+    line = describe_crosstalk(DepthPipeline(rig.with_crosstalk([0.04, 0.03])))
+    assert line == ("colour crosstalk: the red channel sees 4.0 % of the blue light and the "
+                    "blue channel sees 3.0 % of the red light (measured, from the rig file)")
+    line = describe_crosstalk(DepthPipeline(rig, PipelineConfig(crosstalk=0.035)))
+    assert line.endswith("(from the crosstalk option)") and "3.5 %" in line

@@ -117,7 +117,12 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.exposure import BlurAwareExposure, settle_exposure
     from lightflow.app.recording import RecordingWriter
     from lightflow.app.runner import Runner
-    from lightflow.app.status import StatusLine, describe_blur, describe_response
+    from lightflow.app.status import (
+        StatusLine,
+        describe_blur,
+        describe_crosstalk,
+        describe_response,
+    )
 
     exposure = parse_exposure(args.exposure)
     if args.frames is not None and args.frames <= 0:
@@ -203,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
     status.finish(stats, bad)
     print(describe_blur(pipeline), file=sys.stderr)
     print(describe_response(pipeline), file=sys.stderr)
+    print(describe_crosstalk(pipeline), file=sys.stderr)
     if stats.frames_done == 0 and bad:
         raise FrameError(f"{camera.uri}: no frame could be used ({bad[0]})")
     describe_outputs(sinks)

@@ -61,7 +61,12 @@ def run(args: argparse.Namespace) -> int:
     from lightflow.app.recording import timestamp_problems
     from lightflow.app.replay_camera import RecordedCamera
     from lightflow.app.runner import Runner
-    from lightflow.app.status import StatusLine, describe_blur, describe_response
+    from lightflow.app.status import (
+        StatusLine,
+        describe_blur,
+        describe_crosstalk,
+        describe_response,
+    )
 
     rig = resolve_rig(args.rig) if args.rig else None
     if rig is not None:
@@ -94,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     status.finish(stats, camera.bad_frames)
     print(describe_blur(pipeline), file=sys.stderr)
     print(describe_response(pipeline), file=sys.stderr)
+    print(describe_crosstalk(pipeline), file=sys.stderr)
     describe_outputs(sinks)
     if runner.interrupted:
         print("stopped early (Ctrl-C): outputs hold the frames processed so far", file=sys.stderr)

@@ -752,6 +752,17 @@ class DepthPipeline:
         return static_width_excess(m.ravel(), r.ravel(), line.ravel(),
                                    min_bands=rsp.MIN_STILL_LINES)  # fmt: skip
 
+    @property
+    def crosstalk(self) -> tuple[np.ndarray, str]:
+        """Per pattern, the colour crosstalk subtracted now (NaN where none is known yet),
+        and where it came from: ``option``, ``rig`` or ``frames`` (``""``: not yet)."""
+        if self.config.crosstalk != "auto":
+            return np.full(2, float(self.config.crosstalk)), "option"
+        if self._rig_leak is not None:
+            return self._rig_leak.copy(), "rig"
+        known = np.where(self._leak_known, self._leak, np.nan)
+        return known, "frames" if self._leak_known.any() else ""
+
     def estimate_crosstalk(self, frame) -> np.ndarray:
         """Per pattern (file order), the share of the other pattern's light that its camera
         channel sees in ``frame``: NaN where the frame shows too few clean gaps for it.
