@@ -990,12 +990,9 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     runs = np.concatenate([runs for _, runs, _, _ in parts])
     prep = np.concatenate([prep for _, _, prep, _ in parts])
     tight = np.concatenate([tight for _, _, _, tight in parts])
-    B = np.ascontiguousarray(prep[:, 0])
-    mag = B / pitch[pat]
-    sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+    B, w, sigma = _stretch_optics(prep, pat, line_px, pitch, blur)
     row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
     lo, hi = prep[:, 1].astype(np.int64), prep[:, 2].astype(np.int64)
-    w = line_px[pat] * mag
     # the floor's uncertainty when it is the only reference: how much the floors under the
     # run's bands, and the lowest levels on its two sides, differ (a step of the
     # background, another surface)
@@ -1070,6 +1067,15 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     return len(done) + int(np.count_nonzero(still)) + flooded + floorless
 
 
+def _stretch_optics(prep, pat, line_px, pitch, blur):
+    """Per prepared run (:func:`_prepare_runs`) of pattern ``pat``: its interval ``B`` (a
+    contiguous copy, one kernel layout), the line's width and the blur there (camera px)."""
+    B = np.ascontiguousarray(prep[:, 0])
+    mag = B / pitch[pat]
+    sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+    return B, line_px[pat] * mag, sigma
+
+
 def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
                     params: OverlapParams, width: int) -> None:
     """Measure each run of ``runs`` again in pieces of :data:`RUN_PIECE_BANDS` to twice that
@@ -1097,12 +1103,10 @@ def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
         return
     pp = pat[owner[ok]]
     prep = prep[ok]
-    B = np.ascontiguousarray(prep[:, 0])
-    mag = B / pitch[pp]
-    sigma = np.sqrt(np.maximum(blur[pp, 0] + blur[pp, 1] * mag * mag, 0.01))
+    B, w, sigma = _stretch_optics(prep, pp, line_px, pitch, blur)
     out = measure_stretches(signals, row[owner[ok]], prep[:, 1].astype(np.int64),
-                            prep[:, 2].astype(np.int64), B, line_px[pp] * mag, sigma,
-                            prior=prior[owner[ok]], params=params)  # fmt: skip
+                            prep[:, 2].astype(np.int64), B, w, sigma, prior=prior[owner[ok]],
+                            params=params)  # fmt: skip
     done = (out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
     _mark_runs(bands, pp, np.ascontiguousarray(pieces[ok]), np.flatnonzero(done),
                np.ascontiguousarray(out[:, O_SWEEP]), B, True)  # fmt: skip
@@ -1159,17 +1163,15 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
                 signals[int(r)] = row_signals(image, int(row_y[r]), weights)
         rows_used = np.array(sorted(signals))
         stack = np.stack([signals[int(r)] for r in rows_used]).reshape(2 * len(rows_used), -1)
-        B = np.ascontiguousarray(prep[:, 0])
-        mag = B / pitch[pat]
-        sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+        B, w, sigma = _stretch_optics(prep, pat, line_px, pitch, blur)
         row = 2 * np.searchsorted(rows_used, runs[:, 0]) + pat
         out = measure_stretches(stack, row, prep[:, 1].astype(np.int64),
-                                prep[:, 2].astype(np.int64), B, line_px[pat] * mag, sigma,
-                                prior=prior, params=params)  # fmt: skip
+                                prep[:, 2].astype(np.int64), B, w, sigma, prior=prior,
+                                params=params)  # fmt: skip
         # bands that touch (n = 0, no gap wider than TIGHT_GAP_SIGMAS blur sigmas) only: a
         # train's pulses pass for valid bands where no floor is near (a whole number of
         # intervals short), and their L / B would make a train read as short touching bands
-        gap = B - out[:, O_SWEEP] - line_px[pat] * mag
+        gap = B - out[:, O_SWEEP] - w
         done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
                               & (gap < TIGHT_GAP_SIGMAS * sigma))  # fmt: skip
         if len(done) == 0:
@@ -1237,12 +1239,10 @@ def _measure_flooded(image, weights, row_y, bands, counts, member, train_sweeps,
     signals = np.empty((2 * len(rows_used), image.shape[1]))
     for i, r in enumerate(rows_used):
         signals[2 * i : 2 * i + 2] = row_signals(image, int(row_y[r]), weights)
-    B = np.ascontiguousarray(prep[:, 0])
-    mag = B / pitch[pat]
-    sigma = np.sqrt(np.maximum(blur[pat, 0] + blur[pat, 1] * mag * mag, 0.01))
+    B, w, sigma = _stretch_optics(prep, pat, line_px, pitch, blur)
     row = 2 * np.searchsorted(rows_used, found[:, 1]) + pat
     out = measure_stretches(signals, row, prep[:, 1].astype(np.int64),
-                            prep[:, 2].astype(np.int64), B, line_px[pat] * mag, sigma,
+                            prep[:, 2].astype(np.int64), B, w, sigma,
                             prior=train_sweeps[found[:, 4]], params=params)  # fmt: skip
     done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
     _mark_runs(bands, pat, np.ascontiguousarray(found[:, 1:4]), done,
