@@ -171,7 +171,7 @@ def describe_crosstalk(pipeline) -> str:
     how = "`lightflow rig blur` measures it on still lines"
     if source == "frames":
         return f"colour crosstalk: {shares} (estimated on the frames; {how})"
-    return f"colour crosstalk: not known (no frame had clean gaps for it; taken as 0; {how})"
+    return f"colour crosstalk: not known (no frame gave an estimate; taken as 0; {how})"
 
 
 #: ``RunStats.extra`` key prefix of the grid pixels without depth, summed over a run

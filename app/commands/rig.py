@@ -190,7 +190,8 @@ def run_blur(args: argparse.Namespace) -> int:
         if rec.rig.geometry_digest() != rig.geometry_digest():
             raise ConfigError(f"{path}: its rig differs from {recs[0].rig.source}: give --rig")
     frames = [frame for rec in recs for frame in recording_frames(rec)]
-    out, response, blurs = calibrate_optics(rig, frames)
+    # measured afresh: a crosstalk the rig file had is kept only where none was measured
+    out, response, blurs = calibrate_optics(rig.with_crosstalk([None, None]), frames)
     if response is None:
         print(f"camera response: not measured (too few still lines); kept the rig's gamma "
               f"{rig.camera.gamma:g}")  # fmt: skip
@@ -211,14 +212,19 @@ def run_blur(args: argparse.Namespace) -> int:
                   f"({lo:.2f}-{hi:.2f}): record still surfaces at other distances too, "
                   f"or the blur away from this one is a guess")  # fmt: skip
     measured = out.crosstalk
-    if measured is None:
+    if measured is None and rig.crosstalk is not None:
+        out = out.with_crosstalk(rig.crosstalk)
+        print("colour crosstalk: not measured (too few clean gaps between still lines); "
+              "kept the rig file's")  # fmt: skip
+    elif measured is None:
         print("colour crosstalk: not measured (too few clean gaps between still lines); "
               "the pipeline will estimate it on the frames")  # fmt: skip
     else:
         (_, p1), (_, p2) = rig.patterns
         print(f"colour crosstalk: the {p1.channel} channel sees {100 * measured[0]:.1f} % of "
-              f"the {p2.channel} pattern's light, the {p2.channel} channel "
-              f"{100 * measured[1]:.1f} % of the {p1.channel} one's (subtracted from every frame)")
+              f"the {p2.channel} light and the {p2.channel} channel sees "
+              f"{100 * measured[1]:.1f} % of the {p1.channel} light (subtracted from every "
+              f"frame)")  # fmt: skip
     save_rig(out, args.out)
     print(f"wrote {args.out}: the rig with the camera's response and each pattern's "
           f"measured blur and crosstalk")  # fmt: skip

@@ -1418,9 +1418,13 @@ def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
         ns = bands_in_row(ss, thr, 0.0, 0.3, 1.0, 0.25, bs)
         free[:] = True
         for q in range(nt):
-            if np.isnan(bt[q, F_START]):
+            if np.isnan(bt[q, F_START]) or np.isnan(bt[q, F_END]):
                 continue
-            reach = LEAK_REACH_RAMPS * bt[q, F_RAMP] + 1.0
+            # a cut, faint or merged segment has no ramp: a quarter of its width, generously
+            ramp = bt[q, F_RAMP]
+            if not ramp >= 0.0:
+                ramp = 0.25 * (bt[q, F_END] - bt[q, F_START]) + 2.0
+            reach = LEAK_REACH_RAMPS * ramp + 1.0
             for j in range(max(0, int(bt[q, F_START] - reach)),
                            min(w, int(bt[q, F_END] + reach) + 2)):  # fmt: skip
                 free[j] = False

@@ -604,8 +604,8 @@ def measure_stretches(
     n = row.shape[0]
 
     def vec(v, fill=np.nan):
-        # always a writeable contiguous copy: broadcast views are read-only, and a kernel
-        # compiles once per such flag (a live frame's first call would compile again)
+        # always writeable and contiguous (a copy where needed): broadcast views are
+        # read-only, and a kernel compiles once per such flag (a live frame would compile)
         v = fill if v is None else v
         return np.require(np.broadcast_to(np.asarray(v, np.float64), (n,)), None, ["C", "W"])
 
@@ -665,6 +665,9 @@ MIN_RUN_BANDS = 3
 #: many bands or more (their sweep changes along the row: a board's 60-97 % of the interval
 #: across the image read -8 to +5 % as one stretch, within 2 % in pieces)
 RUN_PIECE_BANDS = 5
+#: a piece keeps its own sweep where it differs from its run's by more than this many of
+#: its predicted standard deviations (elsewhere the run's, from more periods, is better)
+PIECE_SIGMAS = 2.0
 #: how far (line intervals) beyond each end of a run its background is looked for, as the
 #: band detector looks for the floor (:data:`~lightflow.app.core.bands.FLOOR_GAPS` gaps)
 FLOOR_REACH = FLOOR_GAPS
@@ -679,15 +682,16 @@ CONTINUATION_TOLERANCE = 0.3
 FLOOD_PASSES = 2
 FLOOD_REACH = 0.3
 #: passes of :func:`_measure_floorless` along the rows: each measures the runs of touching
-#: bands next to a band measured before (one run of 3-5 bands further per pass)
+#: bands next to a band measured before (one run of 3-9 bands further per pass)
 FLOORLESS_PASSES = 4
 #: how far (line intervals) from a run's end band the measured band that gives it its
 #: ``L / B`` may be, and by how much the measured bands on its two sides may disagree
 FLOORLESS_REACH = 1.6
 FLOORLESS_AGREE = 0.2
-#: their sweeps' largest predicted relative standard deviation (their bands touch: the
-#: pulse shape is measured less well than a run's beside a clean gap)
-FLOORLESS_MAX_REL_STD = 0.04
+#: their sweeps' largest predicted relative standard deviation, in units of the
+#: measurement's (their bands touch: the pulse shape is measured less well than a run's
+#: beside a clean gap; the pipeline's 2 % -> 4 %)
+FLOORLESS_STD_FACTOR = 2.0
 #: largest deviation of a run's centre spacings from their median (share of it): the
 #: pulses of overlapping bands are exactly periodic on a smooth surface
 RUN_SPACING_TOLERANCE = 0.1
@@ -725,14 +729,36 @@ def _find_runs(bands, counts, min_bands, runs, piece=1 << 30):
                    and np.isfinite(bands[r, j + 1, F_CENTRE])):  # fmt: skip
                 j += 1
             if j - k + 1 >= min_bands:
-                for first in range(k, j + 2 - piece if j - k + 1 >= piece else k + 1, piece):
-                    if m == runs.shape[0]:
-                        break
-                    runs[m, 0] = r
-                    runs[m, 1] = first
-                    runs[m, 2] = first + piece - 1 if j - first + 1 >= 2 * piece else j
-                    m += 1
+                m = _cut_run(r, k, j, piece, runs, m)
             k = j + 1
+    return m
+
+
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
+def _cut_run(r, k, j, piece, runs, m):
+    """Append run ``k..j`` of row ``r`` to ``runs`` from ``m`` on, cut into pieces of
+    ``piece`` to ``2 piece - 1`` bands when it has ``2 piece`` or more (whole otherwise);
+    returns the new count (stops when ``runs`` is full)."""
+    for first in range(k, j + 2 - piece if j - k + 1 >= piece else k + 1, piece):
+        if m == runs.shape[0]:
+            break
+        runs[m, 0] = r
+        runs[m, 1] = first
+        runs[m, 2] = first + piece - 1 if j - first + 1 >= 2 * piece else j
+        m += 1
+    return m
+
+
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+def _cut_runs(runs, piece, out):
+    """Every run of ``runs`` cut as :func:`_cut_run` does, into ``out``; returns the number of
+    pieces, and ``out[:, 3]`` the run each piece belongs to."""
+    m = 0
+    for q in range(runs.shape[0]):
+        start = m
+        m = _cut_run(runs[q, 0], runs[q, 1], runs[q, 2], piece, out, m)
+        for i in range(start, m):
+            out[i, 3] = q
     return m
 
 
@@ -898,7 +924,7 @@ def warm_up(params: OverlapParams | None = None) -> None:
     long[:, 0, :, F_CENTRE] = 20.0 * np.arange(1, 2 * RUN_PIECE_BANDS + 1)
     long[:, 0, :, F_VALID] = BAND_PERIODIC
     _measure_pieces(np.zeros((2, 20 * (2 * RUN_PIECE_BANDS + 1))), one, long, one,
-                    np.array([[0, 0, 2 * RUN_PIECE_BANDS - 1]], np.int64), np.full(1, 0.5),
+                    np.array([[0, 0, 2 * RUN_PIECE_BANDS - 1]], np.int64), np.full(1, 10.0),
                     np.ones(2), np.ones(2), np.ones((2, 2)),
                     OverlapParams() if params is None else params, long.shape[2] * 20)  # fmt: skip
 
@@ -962,9 +988,10 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     parts = []
     for p in range(2):
         for tight in (False, True):
-            # room for every run: a row of overlap-rejected bands holds a few, a row of
-            # tight valid bands one per MIN_RUN_BANDS of them
-            size = int(counts[p].sum()) // MIN_RUN_BANDS + 1 if tight else counts.shape[1] * 4
+            # room for every run: each holds MIN_RUN_BANDS bands or more (a row of 60
+            # overlapping bands holds one, a row of tight valid bands one per
+            # MIN_RUN_BANDS of them)
+            size = int(counts[p].sum()) // MIN_RUN_BANDS + 1
             runs = np.empty((size, 3), np.int64)
             if tight:
                 m = _find_tight_runs(bands[p], counts[p], MIN_RUN_BANDS, line_px[p] / pitch[p],
@@ -1028,8 +1055,8 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     long = done[(out[done, O_TURNS] == 0)
                 & (runs[done, 2] - runs[done, 1] + 1 >= 2 * RUN_PIECE_BANDS)]  # fmt: skip
     if len(long):
-        _measure_pieces(signals, row[long], bands, pat[long], runs[long],
-                        out[long, O_SWEEP] / B[long], line_px, pitch, blur, params, width)
+        _measure_pieces(signals, row[long], bands, pat[long], runs[long], out[long, O_SWEEP],
+                        line_px, pitch, blur, params, width)  # fmt: skip
     # past the ends of a run swept past its neighbours, bands that continue its pulse train
     # are more of its pulses that the detector took for bands (no clean gap showed the
     # floor near them): rejected, not measured whole intervals short
@@ -1076,21 +1103,20 @@ def _stretch_optics(prep, pat, line_px, pitch, blur):
     return B, line_px[pat] * mag, sigma
 
 
-def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
+def _measure_pieces(signals, row, bands, pat, runs, sweep, line_px, pitch, blur,
                     params: OverlapParams, width: int) -> None:
-    """Measure each run of ``runs`` again in pieces of :data:`RUN_PIECE_BANDS` to twice that
-    many bands, with the run's ``L / B`` (``prior``) as the reference for ``n``; the pieces
-    measured get their own sweep and spacing, the others are rejected."""
-    pieces, owner = [], []
-    for q in range(len(runs)):
-        r, k0, k1 = (int(v) for v in runs[q])
-        for first in range(k0, k1 + 2 - RUN_PIECE_BANDS, RUN_PIECE_BANDS):
-            last = first + RUN_PIECE_BANDS - 1 if k1 - first + 1 >= 2 * RUN_PIECE_BANDS else k1
-            pieces.append((r, first, last))
-            owner.append(q)
-    pieces = np.array(pieces, np.int64).reshape(-1, 3)
-    owner = np.array(owner, np.int64)
-    prep = np.empty((len(pieces), 6))
+    """Measure each run of ``runs`` (its sweep ``sweep``) again in pieces of
+    :data:`RUN_PIECE_BANDS` to twice that many bands, with the run's ``L / B`` as the
+    reference for ``n``.  A piece takes its own sweep and spacing where it differs from
+    the run's by more than :data:`PIECE_SIGMAS` of its predicted error (the sweep changes
+    along the run); elsewhere the run's reading stays (it pools more periods: a piece's
+    stretch also reaches past the run's ends).  A piece that cannot be measured keeps it
+    too, unless another piece of its run took its own (then it is rejected)."""
+    cut = np.empty((int((runs[:, 2] - runs[:, 1] + 1).sum()) // RUN_PIECE_BANDS + len(runs), 4),
+                   np.int64)  # fmt: skip
+    m = _cut_runs(np.ascontiguousarray(runs), RUN_PIECE_BANDS, cut)
+    pieces, owner = np.ascontiguousarray(cut[:m, :3]), cut[:m, 3]
+    prep = np.empty((m, 6))
     for p in range(2):
         sel = np.flatnonzero(pat[owner] == p)
         if len(sel):
@@ -1104,17 +1130,23 @@ def _measure_pieces(signals, row, bands, pat, runs, prior, line_px, pitch, blur,
     pp = pat[owner[ok]]
     prep = prep[ok]
     B, w, sigma = _stretch_optics(prep, pp, line_px, pitch, blur)
+    run_sweep = sweep[owner[ok]]
     out = measure_stretches(signals, row[owner[ok]], prep[:, 1].astype(np.int64),
-                            prep[:, 2].astype(np.int64), B, w, sigma, prior=prior[owner[ok]],
-                            params=params)  # fmt: skip
-    done = (out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
+                            prep[:, 2].astype(np.int64), B, w, sigma,
+                            prior=run_sweep / B, params=params)  # fmt: skip
+    done = ((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] == 0)
+            & (np.abs(out[:, O_SWEEP] - run_sweep) > PIECE_SIGMAS * out[:, O_STD]))  # fmt: skip
     _mark_runs(bands, pp, np.ascontiguousarray(pieces[ok]), np.flatnonzero(done),
                np.ascontiguousarray(out[:, O_SWEEP]), B, True)  # fmt: skip
-    # a piece that cannot be measured (near an integer L / B) is rejected: the run's sweep
-    # is its average, several per cent off at its ends
-    for i in np.flatnonzero(~done):
-        r, first, last = pieces[ok[i]]
-        bands[pp[i], r, first : last + 1, F_VALID] = BAND_OVERLAP
+    # where a run's sweep changes along it (a piece took its own), its pieces that cannot be
+    # measured (near an integer L / B) are rejected: the run's average is off at its ends
+    varies = np.zeros(len(runs), bool)
+    varies[owner[ok[done]]] = True
+    failed = np.ones(m, bool)
+    failed[ok[out[:, O_CODE] == OV_MEASURED]] = False
+    for i in np.flatnonzero(failed & varies[owner]):
+        r, first, last = pieces[i]
+        bands[pat[owner[i]], r, first : last + 1, F_VALID] = BAND_OVERLAP
 
 
 def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
@@ -1125,9 +1157,10 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
 
     Where a surface's bands touch over a wide stretch (a board whose sweep approaches the
     interval), no clean gap within reach shows the floor, so :func:`measure_runs` could not
-    tell ``n`` for them.  The sweep changes smoothly along a row, so the nearest measured
-    band (valid, or periodic: measured in an earlier pass) within :data:`FLOORLESS_REACH`
-    intervals of the run's end, on either side, gives its ``L / B``; where both sides have
+    tell ``n`` for them (runs with a floor are left as they are).  The sweep changes
+    smoothly along a row, so the nearest measured band (valid, or periodic: measured in an
+    earlier pass) within :data:`FLOORLESS_REACH` of the run's spacing from its end bands,
+    on either side, gives its ``L / B``; where both sides have
     one they must agree within :data:`FLOORLESS_AGREE`, else the run stays rejected (an
     edge between two surfaces).  :func:`measure_stretch` then keeps ``n`` only where the
     reference lies within 0.3 intervals of a candidate, and only bands that touch (``n =
@@ -1136,20 +1169,21 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
     measured = 0
     width = image.shape[1]
     signals: dict[int, np.ndarray] = {}
-    params = dataclasses.replace(params, max_rel_std=max(params.max_rel_std,
-                                                         FLOORLESS_MAX_REL_STD))  # fmt: skip
+    params = dataclasses.replace(params, max_rel_std=FLOORLESS_STD_FACTOR * params.max_rel_std)
     for _ in range(FLOORLESS_PASSES):
         parts = []
         for p in range(2):
-            runs = np.empty((counts.shape[1] * 4, 3), np.int64)
+            runs = np.empty((int(counts[p].sum()) // MIN_RUN_BANDS + 1, 3), np.int64)
             m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs, RUN_PIECE_BANDS)
             if m == 0:
                 continue
             prep = np.empty((m, 6))
             _prepare_runs(bands[p], runs, m, RUN_SPACING_TOLERANCE, width, prep)
             prior = np.empty(m)
-            _row_priors(bands[p], counts[p], runs, m, FLOORLESS_REACH, FLOORLESS_AGREE, prior)
-            ok = np.isfinite(prep[:, 0]) & np.isfinite(prior)
+            _row_priors(bands[p], counts[p], runs, m, np.ascontiguousarray(prep[:, 0]),
+                        FLOORLESS_REACH, FLOORLESS_AGREE, prior)  # fmt: skip
+            # runs with a floor had their reading in measure_runs
+            ok = np.isfinite(prep[:, 0]) & np.isfinite(prior) & ~np.isfinite(prep[:, 3])
             if ok.any():
                 parts.append((p, runs[:m][ok], prep[ok], prior[ok]))
         if not parts:
@@ -1182,13 +1216,14 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
 
 
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
-def _row_priors(bands, counts, runs, m, reach, agree, out):
+def _row_priors(bands, counts, runs, m, spacing, reach, agree, out):
     """Per run of one pattern, the ``L / B`` of the nearest measured band (valid or
-    periodic, with an interval) in its row within ``reach`` intervals of its end bands, the
-    mean of the two sides' where both have one and they agree within ``agree``; NaN where
-    neither side has one or they disagree."""
+    periodic, with an interval) in its row within ``reach`` of the run's ``spacing`` from
+    its end bands, the mean of the two sides' where both have one and they agree within
+    ``agree``; NaN where neither side has one or they disagree."""
     for q in range(m):
         r, k0, k1 = runs[q, 0], runs[q, 1], runs[q, 2]
+        limit = reach * spacing[q]  # not an end band's own interval: it can be NaN
         n = counts[r]
         sides = np.full(2, np.nan)
         for side in range(2):
@@ -1197,7 +1232,7 @@ def _row_priors(bands, counts, runs, m, reach, agree, out):
             step = -1 if side == 0 else 1
             while 0 <= k < n:
                 b = bands[r, k]
-                if abs(b[F_CENTRE] - end[F_CENTRE]) > reach * end[F_INTERVAL]:
+                if not abs(b[F_CENTRE] - end[F_CENTRE]) <= limit:
                     break
                 if (b[F_VALID] == BAND_VALID or b[F_VALID] == BAND_PERIODIC) and b[F_INTERVAL] > 0:
                     sides[side] = b[F_LENGTH] / b[F_INTERVAL]

@@ -767,8 +767,9 @@ class DepthPipeline:
         """Per pattern (file order), the share of the other pattern's light that its camera
         channel sees in ``frame``: NaN where the frame shows too few clean gaps for it.
 
-        What ``crosstalk = "auto"`` estimates now and then; the pipeline's state is
-        unchanged.  On still lines (``lightflow rig blur``) it is the rig's crosstalk.
+        What ``crosstalk = "auto"`` estimates now and then; the pipeline's leak and learnt
+        windows are unchanged.  On still lines (``lightflow rig blur``) it is the rig's
+        crosstalk.
         """
         return self._crosstalk_in(self._prepared(frame))
 

@@ -58,10 +58,10 @@ class Pattern:
     crosstalk : float, optional
         Measured share of the other pattern's light that this pattern's camera
         channel sees (``lightflow rig blur``, on still lines), 0 to
-        :data:`MAX_CROSSTALK`.  The pipeline subtracts it.  Without it the
-        pipeline estimates it on the frames, which needs clean gaps between this
-        pattern's bands: long sweeps leave too few, and the other pattern's lines
-        then show inside this pattern's bands.
+        :data:`MAX_CROSSTALK`.  The pipeline subtracts it when every pattern of
+        the rig has one (:attr:`Rig.crosstalk`); otherwise it estimates both on the
+        frames, which needs clean gaps between the bands: long sweeps leave too few,
+        and the other pattern's lines then show inside this pattern's bands.
     """
 
     channel: str
