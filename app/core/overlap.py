@@ -1152,19 +1152,21 @@ def _measure_pieces(signals, row, bands, pat, runs, sweep, line_px, pitch, blur,
 def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
                        params: OverlapParams) -> int:  # fmt: skip
     """Measure the runs of overlap-rejected bands that are still rejected, with the ``L / B``
-    of the measured bands beside them in their row as the reference for ``n``; returns the
-    number measured.
+    of the measured bands beside them in their row as the reference for ``n``, at twice the
+    caller's largest relative error (:data:`FLOORLESS_STD_FACTOR`); returns the number
+    measured.  Still rejected are the runs without a floor and those whose reading with
+    it was flat or ambiguous at the caller's precision (held out, the second kind gave
+    gen2028's boards 4-5 points of coverage at the same error).
 
     Where a surface's bands touch over a wide stretch (a board whose sweep approaches the
     interval), no clean gap within reach shows the floor, so :func:`measure_runs` could not
-    tell ``n`` for them (runs with a floor are left as they are).  The sweep changes
-    smoothly along a row, so the nearest measured band (valid, or periodic: measured in an
-    earlier pass) within :data:`FLOORLESS_REACH` of the run's spacing from its end bands,
-    on either side, gives its ``L / B``; where both sides have
-    one they must agree within :data:`FLOORLESS_AGREE`, else the run stays rejected (an
-    edge between two surfaces).  :func:`measure_stretch` then keeps ``n`` only where the
-    reference lies within 0.3 intervals of a candidate, and only bands that touch (``n =
-    0`` and a gap narrower than :data:`TIGHT_GAP_SIGMAS` blur sigmas) are kept.
+    tell ``n`` for them.  The sweep changes smoothly along a row, so the nearest measured
+    band (valid, or periodic: measured in an earlier pass) within :data:`FLOORLESS_REACH`
+    of the run's spacing from its end bands, on either side, gives its ``L / B``; where
+    both sides have one they must agree within :data:`FLOORLESS_AGREE`, else the run stays
+    rejected (an edge between two surfaces).  :func:`measure_stretch` then keeps ``n`` only
+    where the reference lies within 0.3 intervals of a candidate, and only bands that touch
+    (``n = 0`` and a gap narrower than :data:`TIGHT_GAP_SIGMAS` blur sigmas) are kept.
     """
     measured = 0
     width = image.shape[1]
@@ -1182,8 +1184,7 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
             prior = np.empty(m)
             _row_priors(bands[p], counts[p], runs, m, np.ascontiguousarray(prep[:, 0]),
                         FLOORLESS_REACH, FLOORLESS_AGREE, prior)  # fmt: skip
-            # runs with a floor had their reading in measure_runs
-            ok = np.isfinite(prep[:, 0]) & np.isfinite(prior) & ~np.isfinite(prep[:, 3])
+            ok = np.isfinite(prep[:, 0]) & np.isfinite(prior)
             if ok.any():
                 parts.append((p, runs[:m][ok], prep[ok], prior[ok]))
         if not parts:
