@@ -1007,7 +1007,9 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
             if ok.any():
                 parts.append((p, runs[:m][ok], prep[ok], np.full(np.count_nonzero(ok), tight)))
     if not parts:
-        return 0
+        # no run has a floor: the measured bands beside them may still give their L / B
+        return _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
+                                  params, {})  # fmt: skip
     # the signals of the rows with runs, both patterns: stretch s reads row 2 i + p
     rows_used = np.unique(np.concatenate([runs[:, 0] for _, runs, _, _ in parts]))
     signals = np.empty((2 * len(rows_used), width))
@@ -1079,7 +1081,8 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     # runs of touching bands with no clean gap within reach have no floor: the measured
     # bands beside them in their row give their L / B, a run further per pass
     floorless = _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
-                                   params)  # fmt: skip
+                                   params, {int(r): signals[2 * i : 2 * i + 2]
+                                            for i, r in enumerate(rows_used)})  # fmt: skip
     # tight runs last: the pulses of a train far from any clean gap look like tight valid
     # bands (and their floor like n = 0); those continuing a measured train are rejected
     # by now, and a tight run that holds one is not measured
@@ -1150,7 +1153,7 @@ def _measure_pieces(signals, row, bands, pat, runs, sweep, line_px, pitch, blur,
 
 
 def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blur,
-                       params: OverlapParams) -> int:  # fmt: skip
+                       params: OverlapParams, signals: dict) -> int:  # fmt: skip
     """Measure the runs of overlap-rejected bands that are still rejected, with the ``L / B``
     of the measured bands beside them in their row as the reference for ``n``, at twice the
     caller's largest relative error (:data:`FLOORLESS_STD_FACTOR`); returns the number
@@ -1167,10 +1170,12 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
     rejected (an edge between two surfaces).  :func:`measure_stretch` then keeps ``n`` only
     where the reference lies within 0.3 intervals of a candidate, and only bands that touch
     (``n = 0`` and a gap narrower than :data:`TIGHT_GAP_SIGMAS` blur sigmas) are kept.
+
+    ``signals`` holds the row signals (``(2, W)`` per measured row) already read; the
+    rows it lacks are read and added.
     """
     measured = 0
     width = image.shape[1]
-    signals: dict[int, np.ndarray] = {}
     params = dataclasses.replace(params, max_rel_std=FLOORLESS_STD_FACTOR * params.max_rel_std)
     for _ in range(FLOORLESS_PASSES):
         parts = []
