@@ -175,8 +175,8 @@ def measure_blur(rig: Rig, frames: Iterable, stride: int = 4) -> list[PatternBlu
 def measure_crosstalk(rig: Rig, frames: Iterable, stride: int = 4) -> list[float | None]:
     """Each pattern's colour crosstalk on frames of static surfaces.
 
-    Across each still line of one pattern that falls in a gap of the other, the
-    other pattern's camera channel rises by the crosstalk times the line's height
+    Across each still line of one pattern, the other pattern's camera channel rises by
+    the crosstalk times the line's height, where no line of its own reaches
     (:func:`lightflow.app.core.bands.estimate_leak`).  Still lines leave wide, clean
     gaps, which moving bands often do not.
 

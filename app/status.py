@@ -150,6 +150,17 @@ def describe_response(pipeline) -> str:
     return f"camera response: linear ({source})"
 
 
+def crosstalk_shares(rig, values) -> str:
+    """``values`` (per pattern) said in words: "the red channel sees 4.0 % of the blue
+    light and the blue channel sees 3.0 % of the red light"."""
+    a, b = (pat.channel for _, pat in rig.patterns)
+    return " and ".join(
+        f"the {name} channel sees {100 * v:.1f} % of the {other} light" if math.isfinite(v)
+        else f"not known for the {name} channel"
+        for v, name, other in ((values[0], a, b), (values[1], b, a))
+    )
+
+
 def describe_crosstalk(pipeline) -> str:
     """One summary line: the colour crosstalk subtracted from the frames, and whence.
 
@@ -158,12 +169,7 @@ def describe_crosstalk(pipeline) -> str:
     measure it.
     """
     values, source = pipeline.crosstalk
-    a, b = (pat.channel for _, pat in pipeline.rig.patterns)
-    shares = " and ".join(
-        f"the {name} channel sees {100 * v:.1f} % of the {other} light" if math.isfinite(v)
-        else f"not known for the {name} channel"
-        for v, name, other in ((values[0], a, b), (values[1], b, a))
-    )
+    shares = crosstalk_shares(pipeline.rig, values)
     if source == "option":
         return f"colour crosstalk: {shares} (from the crosstalk option)"
     if source == "rig":

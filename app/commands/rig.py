@@ -182,6 +182,7 @@ def run_blur(args: argparse.Namespace) -> int:
     from lightflow.app.blurcal import MIN_MAGNIFICATION_SPAN, calibrate_optics
     from lightflow.app.core.rig import save_rig
     from lightflow.app.recording import read_recording, recording_frames
+    from lightflow.app.status import crosstalk_shares
 
     rig = resolve_rig(args.rig) if args.rig else None
     recs = [read_recording(path, rig) for path in args.recordings]
@@ -220,10 +221,7 @@ def run_blur(args: argparse.Namespace) -> int:
         print("colour crosstalk: not measured (too few clean gaps between still lines); "
               "the pipeline will estimate it on the frames")  # fmt: skip
     else:
-        (_, p1), (_, p2) = rig.patterns
-        print(f"colour crosstalk: the {p1.channel} channel sees {100 * measured[0]:.1f} % of "
-              f"the {p2.channel} light and the {p2.channel} channel sees "
-              f"{100 * measured[1]:.1f} % of the {p1.channel} light (subtracted from every "
+        print(f"colour crosstalk: {crosstalk_shares(rig, measured)} (subtracted from every "
               f"frame)")  # fmt: skip
     save_rig(out, args.out)
     print(f"wrote {args.out}: the rig with the camera's response and each pattern's "

@@ -168,22 +168,21 @@ class Rig:
 
     def with_blur(self, blurs) -> Rig:
         """The same rig with a measured blur ``(a, b)`` per pattern (file order), or None."""
-        blurs = list(blurs)
-        projectors = []
-        for proj in self.projectors:
-            pats = tuple(replace(pat, blur=None if (b := blurs.pop(0)) is None
-                                 else (float(b[0]), float(b[1])))
-                         for pat in proj.patterns)  # fmt: skip
-            projectors.append(replace(proj, patterns=pats))
-        return replace(self, projectors=tuple(projectors))
+        return self._with_per_pattern("blur", blurs,
+                                      lambda b: (float(b[0]), float(b[1])))  # fmt: skip
 
     def with_crosstalk(self, values) -> Rig:
         """The same rig with a measured crosstalk per pattern (file order), or None."""
+        return self._with_per_pattern("crosstalk", values, float)
+
+    def _with_per_pattern(self, name: str, values, convert) -> Rig:
+        """The same rig with pattern field ``name`` set to ``convert(v)`` per pattern (file
+        order), or None where ``v`` is None."""
         values = list(values)
         projectors = []
         for proj in self.projectors:
-            pats = tuple(replace(pat, crosstalk=None if (c := values.pop(0)) is None
-                                 else float(c))
+            pats = tuple(replace(pat, **{name: None if (v := values.pop(0)) is None
+                                         else convert(v)})
                          for pat in proj.patterns)  # fmt: skip
             projectors.append(replace(proj, patterns=pats))
         return replace(self, projectors=tuple(projectors))
