@@ -297,7 +297,7 @@ def detect_and_measure_runs(B, w, sigma, L, phase, bg=(BG, BG), lines=14, split=
     bands = np.empty((2, 1, 96, N_FIELDS))
     counts = np.empty((2, 1), np.int64)
     detect_bands(img, weights, np.array([1], np.int64), np.array([int(2 * B) | 1] * 2, np.int64),
-                 255.0, params, bands, counts)  # fmt: skip
+                 255.0, params, np.zeros((2, 3)), bands, counts)  # fmt: skip
     measure_runs(img, weights, np.array([1]), bands, counts, np.array([w, w]),
                  np.array([B, B]), np.array([[sigma * sigma, 0.0]] * 2),
                  OverlapParams(max_rel_std=0.02))  # fmt: skip
@@ -430,7 +430,7 @@ def detect_rows(rows, B):
     bands = np.empty((2, len(rows), 96, N_FIELDS))
     counts = np.empty((2, len(rows)), np.int64)
     detect_bands(img, weights, row_y, np.array([int(2 * B) | 1] * 2, np.int64), 255.0, params,
-                 bands, counts)  # fmt: skip
+                 np.zeros((2, 3)), bands, counts)  # fmt: skip
     return img, weights, row_y, bands, counts
 
 

@@ -456,7 +456,7 @@ class BandStageWarmUp:
 
         w = self.image.shape[1]
         out = np.empty((self.bands.shape[2], self.bands.shape[3]))
-        bd.bands_in_row(np.zeros(w), np.zeros((2, w)), 6.0, 0.3, 1.0, 0.25, out)
+        bd.bands_in_row(np.zeros(w), np.zeros((2, w)), 6.0, 0.3, 1.0, 0.25, np.zeros(3), out)
 
     def detect(self) -> None:
         """Compile (or load) the band detector's kernels."""
@@ -465,7 +465,7 @@ class BandStageWarmUp:
         weights = np.zeros((2, 3))
         weights[0, 0] = weights[1, 2] = 1.0
         bd.detect_bands(self.image, weights, self.row_y, np.array([61, 61]), 255.0, self.params,
-                        self.bands, self.counts, self.group)  # fmt: skip
+                        np.zeros((2, 3)), self.bands, self.counts, self.group)  # fmt: skip
 
     def rasterise(self) -> None:
         """Compile (or load) the band slants and the rasterisation onto the grid."""

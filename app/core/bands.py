@@ -608,6 +608,89 @@ def _tails(g0, g1, edges, left, right):
     return total / (hi - lo)
 
 
+#: passes of the tail subtraction when the line width and blur are known: each pass
+#: measures the bands again on the backgrounds the last one's tails leave (a pass ends
+#: within about a third of the last one's error on rendered rows of touching bands)
+TAIL_PASSES = 3
+
+
+def _antiderivative2_exact(z):
+    """A second antiderivative of the Gaussian upper tail ``Q(z)``:
+    ``((z^2 + 1) Q(z) - z phi(z)) / 2`` (vectorised, for the table below)."""
+    from math import erfc, exp, pi, sqrt
+
+    return np.array([0.5 * ((t * t + 1.0) * 0.5 * erfc(t / sqrt(2.0))
+                            - t * exp(-0.5 * t * t) / sqrt(2.0 * pi)) for t in z])  # fmt: skip
+
+
+#: :func:`_antiderivative2_exact` tabulated on [-Z, Z] every 1 / STEPS (beyond: ``(z^2 + 1) / 2``
+#: below, 0 above, to 1e-15); linear interpolation is within 3e-5 of it, a 1e-5 share of a
+#: band's height in a gap's tails, and spares four erfc and exp per edge and pass
+_A2_Z = 8.0
+_A2_STEPS = 64
+_A2_TABLE = _antiderivative2_exact(np.linspace(-_A2_Z, _A2_Z, int(2 * _A2_Z * _A2_STEPS) + 1))
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _ramp_antiderivative2(z):
+    """:func:`_antiderivative2_exact` at ``z``, from its table."""
+    if z <= -_A2_Z:
+        return 0.5 * (z * z + 1.0)
+    if z >= _A2_Z:
+        return 0.0
+    t = (z + _A2_Z) * _A2_STEPS
+    i = min(int(t), _A2_TABLE.shape[0] - 2)
+    f = t - i
+    return _A2_TABLE[i] + f * (_A2_TABLE[i + 1] - _A2_TABLE[i])
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _ramp_edge_sum(h, e, w, sigma, lo, hi, sign):
+    """Sum over the samples ``lo + 0.5 .. hi - 0.5`` of a band edge of height ``h`` with
+    its half height at ``e``, falling away from it on the side ``sign`` (+1: right).
+
+    The edge of a swept line is the line's width ``w`` as a linear ramp, blurred by a
+    Gaussian of ``sigma`` (camera px).  A sample integrates its pixel, so the sum over
+    whole samples is the edge's integral over their extent, in closed form: the ramp's
+    mean of the blurred step, integrated once more (:func:`_ramp_antiderivative2`).
+    """
+    a0 = sign * (lo - e)
+    a1 = sign * (hi - e)
+    t0 = min(a0, a1)
+    t1 = max(a0, a1)
+    half = 0.5 * w
+    if t0 - half > 7.0 * sigma:
+        return 0.0  # below 1e-13 of the height: most gaps are that far from their bands
+    f = sigma * sigma / w
+    return h * f * (_ramp_antiderivative2((t1 + half) / sigma)
+                    - _ramp_antiderivative2((t0 + half) / sigma)
+                    - _ramp_antiderivative2((t1 - half) / sigma)
+                    + _ramp_antiderivative2((t0 - half) / sigma))  # fmt: skip
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
+def _ramp_tails(g0, g1, edges, left, right):
+    """:func:`_tails` with each edge a blurred ramp of the known line width
+    (:func:`_ramp_edge_sum`; ``edges`` rows 4 and 5: line width and blur sigma, camera
+    px), where the band has them, else an erf as there."""
+    q = (g1 - g0 + 1) // 4
+    lo = g0 + q - 0.5
+    hi = g1 - q + 0.5
+    if hi <= lo:
+        return 0.0
+    n_e = edges.shape[1]
+    total = 0.0
+    for b, at, sign in ((left, 2, 1.0), (right, 1, -1.0)):
+        if not (0 <= b < n_e and edges[0, b] > 0.0):
+            continue
+        if edges[4, b] > 0.0 and edges[5, b] > 0.0:
+            total += _ramp_edge_sum(edges[0, b], edges[at, b], edges[4, b], edges[5, b], lo, hi,
+                                    sign)  # fmt: skip
+        elif edges[3, b] > 0.0:
+            total += _edge_sum(edges[0, b], edges[at, b], edges[3, b], lo, hi, sign)
+    return total / (hi - lo)
+
+
 #: rows of the per-band scratch that :func:`_band_shape` fills (one column per band): where
 #: and how high the band's maximum is, the first walk's level and ends, the centre and
 #: background it measured the band at, its 20 % crossings, and 1 once it is measured
@@ -742,6 +825,12 @@ def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, sym_tol, out, shape):
     code = BAND_VALID
     if abs(ramp_l - ramp_r) > sym_tol + 0.3 * max(ramp_l, ramp_r):
         code = BAND_CUT
+    # a 20 % crossing past the middle of a gap is a neighbour's: the gap stays above a
+    # fifth of the height, and the bands touch (on a background the tails' subtraction
+    # has brought down to the floor the gap does not reach); its ramps mean nothing
+    touching = x20l < cl or x20r > cr
+    if touching:
+        code = BAND_OVERLAP
     # the gaps must reach the floor: between touching bands the "gap" is two ramps
     # and its level is well above the lowest level around
     # (as measured: tails that fill a gap this much are merged bands)
@@ -761,7 +850,7 @@ def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, sym_tol, out, shape):
                 break
     # a band running into the image border may be cut: it must visibly end before it
     margin = 2.0 * max(ramp_l, ramp_r) + 4.0
-    if x20l - margin < 0 or x20r + margin > n - 1:
+    if not touching and (x20l - margin < 0 or x20r + margin > n - 1):
         out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
         code = BAND_CUT
     # support of the band (ramp extrapolated to zero) must leave a flat gap
@@ -782,12 +871,20 @@ def _gap(seg_a, seg_b, ns, n, g):
 #: rows of :func:`_band_shape`'s
 (_W_GAP_LEVEL, _W_GAP_DIP, _W_GAP_DONE, _W_USED_LEFT, _W_USED_RIGHT, _W_TAILS, _W_LOW, _W_FLOOR,
  _W_EDGES) = range(9)  # fmt: skip
-_N_WORK = _W_EDGES + 4
+_N_WORK = _W_EDGES + 6
 
 
 @nb.njit(cache=True, error_model="numpy")
-def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
-    """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count."""
+def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
+    """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count.
+
+    ``edge``: the pattern's line width and blur, ``(line_px / pitch, a, b / pitch^2)``
+    (camera px: a line ``B`` px from its neighbours is ``edge[0] * B`` wide and blurred by
+    ``sqrt(a + b B^2 / pitch^2)``, :class:`lightflow.app.core.flow.FlowModel`'s blur
+    model), or ``edge[0] <= 0`` where they are not known.  Known, the tails of touching
+    bands are modelled exactly and subtracted in :data:`TAIL_PASSES` passes; else as an
+    erf of each band's measured ramp, once.
+    """
     n = x.shape[0]
     max_b = out.shape[0]
     # segments above the sliding mid-level: first where the row crosses the level, in
@@ -874,21 +971,39 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
     tails = work[_W_TAILS]
     for g in range(ns + 1):
         tails[g] = 0.0
-    if ns > 1:
-        # per band: height, left and right half-height points, edge sigma
-        edges = work[_W_EDGES : _W_EDGES + 4, :ns]
+    known = edge[0] > 0.0
+    for _ in range(TAIL_PASSES if known and ns > 1 else 1 if ns > 1 else 0):
+        # per band: height, left and right half-height points, edge sigma (erf), line
+        # width and blur (known edge model; the line's interval from its neighbours)
+        edges = work[_W_EDGES : _W_EDGES + 6, :ns]
         for k in range(ns):
             edges[0, k] = out[k, F_HEIGHT]
             edges[1, k] = out[k, F_START]
             edges[2, k] = out[k, F_END]
             edges[3, k] = out[k, F_RAMP] / ERF_20_50
+            edges[4, k] = 0.0
+            edges[5, k] = 0.0
+        if known:
+            for k in range(ns):
+                if not (edges[0, k] > 0.0):
+                    continue
+                cl = out[k - 1, F_CENTRE] if k > 0 and edges[0, k - 1] > 0.0 else np.nan
+                cr = out[k + 1, F_CENTRE] if k + 1 < ns and edges[0, k + 1] > 0.0 else np.nan
+                c = out[k, F_CENTRE]
+                spacing = 0.5 * (cr - cl) if np.isfinite(cl) and np.isfinite(cr) \
+                    else cr - c if np.isfinite(cr) else c - cl  # fmt: skip
+                if spacing > 0.0:
+                    edges[4, k] = max(edge[0] * spacing, 0.05)
+                    edges[5, k] = math.sqrt(max(edge[1] + edge[2] * spacing * spacing, 0.01))
         # each gap serves two bands: its tails once (gap k lies left of band k)
         for g in range(ns + 1):
             if not ((g > 0 and edges[0, g - 1] > 0.0) or (g < ns and edges[0, g] > 0.0)):
                 continue
             g0, g1 = _gap(seg_a, seg_b, ns, n, g)
             if g1 >= g0:
-                tails[g] = _tails(g0, g1, edges, g - 1, g)
+                tails[g] = _ramp_tails(g0, g1, edges, g - 1, g) if known \
+                    else _tails(g0, g1, edges, g - 1, g)  # fmt: skip
+        again = False
         for k in range(ns):
             if not (edges[0, k] > 0.0):
                 continue
@@ -896,6 +1011,10 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             tr = tails[k + 1]
             if max(tl, tr) < 0.002 * edges[0, k]:
                 continue
+            # measured again only where the tails moved since its last measurement
+            if abs(tl - used_l[k]) + abs(tr - used_r[k]) < 0.001 * edges[0, k]:
+                continue
+            again = True
             used_l[k] = tl
             used_r[k] = tr
             gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
@@ -903,6 +1022,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
             _band_shape(x, k, seg_a[k], seg_b[k], gap_lv[k] - tl, gap_lv[k + 1] - tr,
                         0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1), min_contrast, out,
                         shape)  # fmt: skip
+        if not again:
+            break  # no band moved: the next pass would find the same tails
     # the checks, once per band, on its last measurement
     for k in range(ns):
         if shape[_S_DONE, k] == 0.0:
@@ -911,6 +1032,12 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, out):
         gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
         _band_checks(x, thr, k, gap_dp[k], gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1),
                      used_l[k], used_r[k], sym_tol, out, shape)  # fmt: skip
+        if known and ns > 1 and work[_W_EDGES + 4, k] > 0.0:
+            # the band's support is its width and the line's: with the tails subtracted
+            # exactly, a gap of min_gap between the supports measures within 0.5 % on
+            # rendered rows (lines at least 3 blur sigmas wide), where the measured ramps'
+            # reach, which also holds the blur, rejected gaps of 1-2 px
+            out[k, F_INTERVAL] = work[_W_EDGES + 4, k]
     # Bands swept further than their interval add up to a periodic profile on a raised
     # floor: narrow pulses where n + 1 swept lines cover a point, n elsewhere.  Their
     # shape is that of short bands with clean gaps; only the floor tells them apart.
@@ -1197,7 +1324,7 @@ def band_slants(bands, counts, row_y):
         _slant_row(bands, counts, row_y, i, i - 1 if i > 0 else 1, partner)
 
 
-def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=1):
+def detect_bands(img, weights, row_y, wins, scale, params, edges, bands, counts, group=1):
     """Detect the bands of every pattern on the image rows ``row_y``.
 
     Each row is measured on its own (optionally averaged with ``params[4]`` rows
@@ -1214,17 +1341,20 @@ def detect_bands(img, weights, row_y, wins, scale, params, bands, counts, group=
     wins : (P,) int64, window of the sliding mid-level (about 2 line intervals)
     scale : float, full-scale value of the image (255, 65535)
     params : (5,) float64 = min_contrast, interval_tol, sym_tol, min_gap, extra rows
+    edges : (P, 3) float64, per pattern the line width and blur (``edge`` of
+        :func:`bands_in_row`; zeros where they are not known)
     bands : (P, R, max_bands, N_FIELDS) float64 output
     counts : (P, R) int64 output
     group : int
     """
     # groups of rows on a thread per core (the kernel releases the GIL)
     run_rows(_detect_groups, row_y.shape[0] // group, img, weights, row_y, wins, scale, params,
-             bands, counts, group)  # fmt: skip
+             edges, bands, counts, group)  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, group, g0, g1):
+def _detect_groups(img, weights, row_y, wins, scale, params, edges, bands, counts, group, g0,
+                   g1):  # fmt: skip
     """:func:`detect_bands` on the row groups ``g0 .. g1``."""
     w = img.shape[1]
     n_p = weights.shape[0]
@@ -1239,7 +1369,8 @@ def _detect_groups(img, weights, row_y, wins, scale, params, bands, counts, grou
                 if q == 0:
                     sliding_mid(x[p], wins[p], thr[p])
                 counts[p, i] = bands_in_row(
-                    x[p], thr[p], params[0] * scale, params[2], params[3], params[1], bands[p, i]
+                    x[p], thr[p], params[0] * scale, params[2], params[3], params[1], edges[p],
+                    bands[p, i],
                 )
 
 
@@ -1407,15 +1538,16 @@ def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
     bt = np.empty((MAX_LEAK_BANDS, N_FIELDS))
     bs = np.empty((MAX_LEAK_BANDS, N_FIELDS))
     free = np.empty(w, np.bool_)
+    no_edge = np.zeros(3)  # the erf tails: a rig's estimate needs no blur
     n_out = 0
     for y in row_y:
         for j in range(w):
             ts[j] = img[y, j, target]
             ss[j] = img[y, j, source]
         sliding_mid(ts, win_t, thr)
-        nt = bands_in_row(ts, thr, 0.0, 0.3, 1.0, 0.25, bt)
+        nt = bands_in_row(ts, thr, 0.0, 0.3, 1.0, 0.25, no_edge, bt)
         sliding_mid(ss, win_s, thr)
-        ns = bands_in_row(ss, thr, 0.0, 0.3, 1.0, 0.25, bs)
+        ns = bands_in_row(ss, thr, 0.0, 0.3, 1.0, 0.25, no_edge, bs)
         free[:] = True
         for q in range(nt):
             if np.isnan(bt[q, F_START]) or np.isnan(bt[q, F_END]):

@@ -560,6 +560,18 @@ class FlowModel:
         self._u_of = np.interp(grid, ratio[order], u[order])
         self._u_step = (self._u_hi - self._u_lo) / (len(grid) - 1)
 
+    def edge_model(self) -> np.ndarray:
+        """Per pattern, the band detector's edge model (``edge`` of
+        :func:`lightflow.app.core.bands.bands_in_row`): ``(line_px / pitch, a, b / pitch^2)``
+        of the blur model, zeros before it is known or for exp2 patterns (no one pitch)."""
+        out = np.zeros((2, 3))
+        if self._fitted:
+            for p in range(2):
+                if self.kinds[p] == 0:
+                    step = self.steps[p]
+                    out[p] = (self.line_px[p] / step, self.blur[p, 0], self.blur[p, 1] / step**2)
+        return out
+
     @property
     def fitted(self) -> bool:
         """Whether the blur model has been fitted from measured bands yet."""

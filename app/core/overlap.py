@@ -665,6 +665,12 @@ MIN_RUN_BANDS = 3
 #: many bands or more (their sweep changes along the row: a board's 60-97 % of the interval
 #: across the image read -8 to +5 % as one stretch, within 2 % in pieces)
 RUN_PIECE_BANDS = 5
+#: the same for runs without a floor (:func:`_measure_floorless`), in shorter pieces: a
+#: stretch's fit takes one sweep and one interval, and where they change along it the pulse
+#: shape alone (no floor to hold the level) reads short, the more the longer the stretch
+#: (fresh rig 23's slow board: -9.1, -4.7 and -1.4 % in pieces of 8, 5 and 3 bands; chosen
+#: on fresh rigs 13-24, the tuning rigs have no such runs)
+FLOORLESS_PIECE_BANDS = 3
 #: a piece keeps its own sweep where it differs from its run's by more than this many of
 #: its predicted standard deviations (elsewhere the run's, from more periods, is better)
 PIECE_SIGMAS = 2.0
@@ -682,8 +688,9 @@ CONTINUATION_TOLERANCE = 0.3
 FLOOD_PASSES = 2
 FLOOD_REACH = 0.3
 #: passes of :func:`_measure_floorless` along the rows: each measures the runs of touching
-#: bands next to a band measured before (one run of 3-9 bands further per pass)
-FLOORLESS_PASSES = 4
+#: bands next to a band measured before (one piece of 3-5 bands further per pass: about as
+#: far as four passes of the longer pieces of the other runs reached)
+FLOORLESS_PASSES = 7
 #: how far (line intervals) from a run's end band the measured band that gives it its
 #: ``L / B`` may be, and by how much the measured bands on its two sides may disagree
 FLOORLESS_REACH = 1.6
@@ -930,7 +937,7 @@ def warm_up(params: OverlapParams | None = None) -> None:
 
 
 def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
-                 params: OverlapParams) -> int:  # fmt: skip
+                 params: OverlapParams, tight_runs: bool = True) -> int:  # fmt: skip
     """Measure the sweeps of runs of overlap-rejected bands, and mark them valid.
 
     Where neighbouring swept lines overlap, the band detector
@@ -952,9 +959,11 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     detector's floor test: they become
     ``BAND_OVERLAP`` rather than give a sweep whole intervals short.
 
-    Runs of valid bands whose gaps are narrower than :data:`TIGHT_GAP_SIGMAS` blur
-    sigmas, which read short alone, are measured the same way (with ``n = 0``); where
-    the periodic profile gives a sweep, it replaces theirs.
+    With ``tight_runs``, runs of valid bands whose gaps are narrower than
+    :data:`TIGHT_GAP_SIGMAS` blur sigmas, which read short alone, are measured the same
+    way (with ``n = 0``); where the periodic profile gives a sweep, it replaces theirs.
+    A detector that knew the line width and blur (``edge`` of
+    :func:`lightflow.app.core.bands.bands_in_row`) read them right alone.
 
     Parameters
     ----------
@@ -987,7 +996,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
     width = image.shape[1]
     parts = []
     for p in range(2):
-        for tight in (False, True):
+        for tight in (False, True) if tight_runs else (False,):
             # room for every run: each holds MIN_RUN_BANDS bands or more (a row of 60
             # overlapping bands holds one, a row of tight valid bands one per
             # MIN_RUN_BANDS of them)
@@ -1181,7 +1190,7 @@ def _measure_floorless(image, weights, row_y, bands, counts, line_px, pitch, blu
         parts = []
         for p in range(2):
             runs = np.empty((int(counts[p].sum()) // MIN_RUN_BANDS + 1, 3), np.int64)
-            m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs, RUN_PIECE_BANDS)
+            m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs, FLOORLESS_PIECE_BANDS)
             if m == 0:
                 continue
             prep = np.empty((m, 6))

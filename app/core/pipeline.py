@@ -283,7 +283,7 @@ class DepthPipeline:
         else:
             bands, counts = out
         bd.detect_bands(image, weights, row_y, wins, self._full_scale, self._band_params,
-                        bands, counts, group)  # fmt: skip
+                        self.flow_model.edge_model(), bands, counts, group)  # fmt: skip
         return bands, counts
 
     @staticmethod
@@ -586,8 +586,9 @@ class DepthPipeline:
         self._periodic = None
         if self._overlap is not None:
             fm = self.flow_model
+            # bands valid alone read right where the detector knew line width and blur
             if ov.measure_runs(image, weights, self._row_y, bands, counts, fm.line_px, fm.steps,
-                               fm.blur, self._overlap):  # fmt: skip
+                               fm.blur, self._overlap, tight_runs=not fm.fitted):  # fmt: skip
                 # cells nearer a periodic band than a band measured alone (codes 2, 1)
                 codes = np.empty((2, 2, gh, gw))
                 fields = np.array([bd.F_VALID, bd.F_INTERVAL], np.int64)

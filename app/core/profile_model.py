@@ -119,7 +119,7 @@ def _simulate_detector(L, w, sigma, phase, out2):
     thr = np.empty((2, n))
     sliding_mid(x, int(2.2 * B) | 1, thr)
     out = np.empty((8, N_FIELDS))
-    ns = bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, out)
+    ns = bands_in_row(x, thr, 0.0, 100.0, 0.0, 1.0, np.zeros(3), out)  # isolated: no tails
     out2[0] = np.nan
     out2[1] = np.nan
     for k in range(ns):
