@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from lightflow.app.core.bands import (
+    BAND_CUT,
+    BAND_FAINT,
     F_CENTRE,
     F_INTERVAL,
     F_LENGTH,
@@ -304,6 +306,21 @@ def test_bands_longer_than_the_interval_are_never_valid(B, w, sigma, known):
             edge = known_edge(B, w, sigma) if known else NO_EDGE
             valid += int(np.sum(detect_row(v, B, edge)[:, F_VALID] == 1.0))
     assert valid == 0
+
+
+@pytest.mark.parametrize("known", [False, True], ids=["erf-tails", "known-edge"])
+def test_a_band_at_the_image_border_is_cut_not_touching(known):
+    """The gap at a row's end is cut short by the border: a band a few pixels inside it
+    is cut (no centre, so no neighbour's interval and no periodic run), never a band
+    that touches a neighbour."""
+    B, L, w, sigma = 24.0, 12.0, 3.0, 1.0
+    for first in (7.0, 8.0, 9.0, 10.0):
+        c = first + B * np.arange(6)
+        v = band_row(int(c[-1] + 40), c, L, w, sigma)
+        b = detect_row(v, B, known_edge(B, w, sigma) if known else NO_EDGE)
+        assert b[0, F_VALID] in (BAND_CUT, BAND_FAINT), first
+        assert np.isnan(b[0, F_CENTRE]), first
+        assert np.all(b[1:5, F_VALID] == 1.0), first
 
 
 def known_edge(B, w, sigma):

@@ -624,8 +624,9 @@ def _antiderivative2_exact(z):
 
 
 #: :func:`_antiderivative2_exact` tabulated on [-Z, Z] every 1 / STEPS (beyond: ``(z^2 + 1) / 2``
-#: below, 0 above, to 1e-15); linear interpolation is within 3e-5 of it, a 1e-5 share of a
-#: band's height in a gap's tails, and spares four erfc and exp per edge and pass
+#: below, 0 above, to 1e-15); linear interpolation is within 3e-5 of it, at most a 2e-5
+#: share of a band's height in a gap's tails for lines at least as wide as their blur
+#: (narrower ones are not read from it), and spares four erfc and exp per edge and pass
 _A2_Z = 8.0
 _A2_STEPS = 64
 _A2_TABLE = _antiderivative2_exact(np.linspace(-_A2_Z, _A2_Z, int(2 * _A2_Z * _A2_STEPS) + 1))
@@ -672,7 +673,13 @@ def _ramp_edge_sum(h, e, w, sigma, lo, hi, sign):
 def _ramp_tails(g0, g1, edges, left, right):
     """:func:`_tails` with each edge a blurred ramp of the known line width
     (:func:`_ramp_edge_sum`; ``edges`` rows 4 and 5: line width and blur sigma, camera
-    px), where the band has them, else an erf as there."""
+    px), where the band has them, else an erf as there.
+
+    The ramp is taken as wide as the line: a sweep shorter than the line has ramps as
+    wide as the sweep, but such bands are short and their gaps wide.  The blur is the
+    model's across the line, not widened along the row by a slanted line's slope, as
+    :func:`lightflow.app.core.flow` widens its camera part: tails of slightly too sharp
+    edges on slanted lines."""
     q = (g1 - g0 + 1) // 4
     lo = g0 + q - 0.5
     hi = g1 - q + 0.5
@@ -683,9 +690,15 @@ def _ramp_tails(g0, g1, edges, left, right):
     for b, at, sign in ((left, 2, 1.0), (right, 1, -1.0)):
         if not (0 <= b < n_e and edges[0, b] > 0.0):
             continue
-        if edges[4, b] > 0.0 and edges[5, b] > 0.0:
-            total += _ramp_edge_sum(edges[0, b], edges[at, b], edges[4, b], edges[5, b], lo, hi,
-                                    sign)  # fmt: skip
+        w = edges[4, b]
+        sigma = edges[5, b]
+        if w >= sigma > 0.0:
+            total += _ramp_edge_sum(edges[0, b], edges[at, b], w, sigma, lo, hi, sign)
+        elif w > 0.0 and sigma > 0.0:
+            # a line narrower than its blur: a Gaussian of both widths (the table's error,
+            # amplified by sigma / w, would not be)
+            total += _edge_sum(edges[0, b], edges[at, b], math.sqrt(sigma * sigma + w * w / 12.0),
+                               lo, hi, sign)  # fmt: skip
         elif edges[3, b] > 0.0:
             total += _edge_sum(edges[0, b], edges[at, b], edges[3, b], lo, hi, sign)
     return total / (hi - lo)
@@ -705,7 +718,8 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
     into ``out[k]``: centre, length, half-height crossings, height and ramp.
 
     ``bl``/``br`` are the background levels of the gaps on its left and right,
-    centred at ``cl``/``cr``, less the neighbours' tails in them (:func:`_tails`).
+    centred at ``cl``/``cr``, less the neighbours' tails in them (:func:`_tails`,
+    :func:`_ramp_tails`).
     ``shape[:, k]`` holds a first measurement of the same band when its ``_S_PEAK_AT``
     is not negative (the caller sets it to -1, and ``_S_LEVEL1`` to -inf, before the
     first): a second one, on a lower background, starts from its maximum and its first
@@ -801,15 +815,16 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, sym_tol, out, shape):
+def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, inner_l, inner_r, sym_tol, out, shape):
     """Set ``F_VALID`` of band ``k``, measured by :func:`_band_shape`: valid, or the first
     reason it is not (``BAND_*``).
 
     ``tl``/``tr`` are the neighbours' tails subtracted from the backgrounds of the gaps
     on its left and right (centred at ``cl``/``cr``; 0 where none were), ``vl``/``vr``
-    how V-shaped those gaps are (:func:`_gap_level`).  Sets ``F_INTERVAL`` to the
-    band's full ramp length for :func:`bands_in_row`, and ``F_CENTRE`` to NaN for a band
-    that may run into the image border.
+    how V-shaped those gaps are (:func:`_gap_level`), ``inner_l``/``inner_r`` whether
+    those gaps lie between two bands (not the row's ends).  Sets ``F_INTERVAL`` to the
+    band's full ramp length for :func:`bands_in_row` (which may replace it with the
+    line's width), and ``F_CENTRE`` to NaN for a band that may run into the image border.
     """
     n = x.shape[0]
     xl = out[k, F_START]
@@ -828,8 +843,10 @@ def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, sym_tol, out, shape):
     # a 20 % crossing past the middle of a gap is a neighbour's: the gap stays above a
     # fifth of the height, and the bands touch (on a background the tails' subtraction
     # has brought down to the floor the gap does not reach); its ramps mean nothing
-    touching = x20l < cl or x20r > cr
-    if touching:
+    # (only towards a neighbour: the gaps at the row's ends may be cut short by the border)
+    touch_l = inner_l and x20l < cl
+    touch_r = inner_r and x20r > cr
+    if touch_l or touch_r:
         code = BAND_OVERLAP
     # the gaps must reach the floor: between touching bands the "gap" is two ramps
     # and its level is well above the lowest level around
@@ -849,8 +866,9 @@ def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, sym_tol, out, shape):
                 code = BAND_IRREGULAR
                 break
     # a band running into the image border may be cut: it must visibly end before it
-    margin = 2.0 * max(ramp_l, ramp_r) + 4.0
-    if not touching and (x20l - margin < 0 or x20r + margin > n - 1):
+    # (judged on the sides that do not touch: there the ramps are the band's own)
+    margin = 2.0 * max(0.0 if touch_l else ramp_l, 0.0 if touch_r else ramp_r) + 4.0
+    if (not touch_l and x20l - margin < 0) or (not touch_r and x20r + margin > n - 1):
         out[k, F_CENTRE] = np.nan  # nor may its centre set a neighbour's interval
         code = BAND_CUT
     # support of the band (ramp extrapolated to zero) must leave a flat gap
@@ -966,8 +984,10 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
     # A narrow gap never reaches the background: the tails of the bands on both sides
     # raise its level, and the half-height crossings of both bands move inwards (by about
     # the raise times the line width: 1-2 % of a sweep of two thirds of the interval).
-    # Subtract the tails, modelled as an erf edge with each band's own ramp, and measure
-    # again.  Isolated bands are untouched.
+    # Subtract the tails and measure again: with the line width and blur known, each edge
+    # is the line's width as a ramp blurred by the blur model (:func:`_ramp_tails`), in up
+    # to TAIL_PASSES passes; else an erf with the band's own ramp, once.  Isolated bands
+    # are untouched.
     tails = work[_W_TAILS]
     for g in range(ns + 1):
         tails[g] = 0.0
@@ -1009,8 +1029,8 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
                 continue
             tl = tails[k]
             tr = tails[k + 1]
-            if max(tl, tr) < 0.002 * edges[0, k]:
-                continue
+            if max(tl, tr, used_l[k], used_r[k]) < 0.002 * edges[0, k]:
+                continue  # never measured on tails, and none to take
             # measured again only where the tails moved since its last measurement
             if abs(tl - used_l[k]) + abs(tr - used_r[k]) < 0.001 * edges[0, k]:
                 continue
@@ -1031,7 +1051,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
         gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)
         gr0, gr1 = _gap(seg_a, seg_b, ns, n, k + 1)
         _band_checks(x, thr, k, gap_dp[k], gap_dp[k + 1], 0.5 * (gl0 + gl1), 0.5 * (gr0 + gr1),
-                     used_l[k], used_r[k], sym_tol, out, shape)  # fmt: skip
+                     used_l[k], used_r[k], k > 0, k < ns - 1, sym_tol, out, shape)  # fmt: skip
         if known and ns > 1 and work[_W_EDGES + 4, k] > 0.0:
             # the band's support is its width and the line's: with the tails subtracted
             # exactly, a gap of min_gap between the supports measures within 0.5 % on

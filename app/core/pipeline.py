@@ -587,8 +587,9 @@ class DepthPipeline:
         if self._overlap is not None:
             fm = self.flow_model
             # bands valid alone read right where the detector knew line width and blur
+            known = bool(np.all(fm.edge_model()[:, 0] > 0.0))
             if ov.measure_runs(image, weights, self._row_y, bands, counts, fm.line_px, fm.steps,
-                               fm.blur, self._overlap, tight_runs=not fm.fitted):  # fmt: skip
+                               fm.blur, self._overlap, tight_runs=not known):  # fmt: skip
                 # cells nearer a periodic band than a band measured alone (codes 2, 1)
                 codes = np.empty((2, 2, gh, gw))
                 fields = np.array([bd.F_VALID, bd.F_INTERVAL], np.int64)
