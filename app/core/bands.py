@@ -585,29 +585,6 @@ def _edge_sum(h, e, sigma, lo, hi, sign):
     return integral - slope * (math.exp(-u_hi * u_hi) - math.exp(-u_lo * u_lo)) / 24.0
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _tails(g0, g1, edges, left, right):
-    """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
-    of band ``left``'s right edge and band ``right``'s left edge.
-
-    Each edge is an erf of its band's height and edge sigma (columns of ``edges``, one
-    per band; its rows: height, left and right half-height points, edge sigma; NaN or
-    out of range: none), summed over the samples by :func:`_edge_sum`.
-    """
-    q = (g1 - g0 + 1) // 4
-    lo = g0 + q - 0.5
-    hi = g1 - q + 0.5
-    if hi <= lo:
-        return 0.0
-    n_e = edges.shape[1]
-    total = 0.0
-    if 0 <= left < n_e and edges[0, left] > 0.0 and edges[3, left] > 0.0:
-        total += _edge_sum(edges[0, left], edges[2, left], edges[3, left], lo, hi, 1.0)
-    if 0 <= right < n_e and edges[0, right] > 0.0 and edges[3, right] > 0.0:
-        total += _edge_sum(edges[0, right], edges[1, right], edges[3, right], lo, hi, -1.0)
-    return total / (hi - lo)
-
-
 #: passes of the tail subtraction when the line width and blur are known: each pass
 #: measures the bands again on the backgrounds the last one's tails leave (a pass ends
 #: within about a third of the last one's error on rendered rows of touching bands)
@@ -670,10 +647,15 @@ def _ramp_edge_sum(h, e, w, sigma, lo, hi, sign):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _ramp_tails(g0, g1, edges, left, right):
-    """:func:`_tails` with each edge a blurred ramp of the known line width
-    (:func:`_ramp_edge_sum`; ``edges`` rows 4 and 5: line width and blur sigma, camera
-    px), where the band has them, else an erf as there.
+def _tails(g0, g1, edges, left, right):
+    """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
+    of band ``left``'s right edge and band ``right``'s left edge.
+
+    ``edges`` has a column per band; its rows: height, left and right half-height
+    points, erf sigma, line width and blur sigma (camera px; NaN, or out of range:
+    no band).  Where a band has a line width and blur, its edge is the line's width as
+    a ramp blurred by that Gaussian (:func:`_ramp_edge_sum`), else an erf of the erf
+    sigma (:func:`_edge_sum`).
 
     The ramp is taken as wide as the line: a sweep shorter than the line has ramps as
     wide as the sweep, but such bands are short and their gaps wide.  The blur is the
@@ -718,8 +700,7 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
     into ``out[k]``: centre, length, half-height crossings, height and ramp.
 
     ``bl``/``br`` are the background levels of the gaps on its left and right,
-    centred at ``cl``/``cr``, less the neighbours' tails in them (:func:`_tails`,
-    :func:`_ramp_tails`).
+    centred at ``cl``/``cr``, less the neighbours' tails in them (:func:`_tails`).
     ``shape[:, k]`` holds a first measurement of the same band when its ``_S_PEAK_AT``
     is not negative (the caller sets it to -1, and ``_S_LEVEL1`` to -inf, before the
     first): a second one, on a lower background, starts from its maximum and its first
@@ -985,7 +966,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
     # raise its level, and the half-height crossings of both bands move inwards (by about
     # the raise times the line width: 1-2 % of a sweep of two thirds of the interval).
     # Subtract the tails and measure again: with the line width and blur known, each edge
-    # is the line's width as a ramp blurred by the blur model (:func:`_ramp_tails`), in up
+    # is the line's width as a ramp blurred by the blur model (:func:`_tails`), in up
     # to TAIL_PASSES passes; else an erf with the band's own ramp, once.  Isolated bands
     # are untouched.
     tails = work[_W_TAILS]
@@ -1021,8 +1002,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
                 continue
             g0, g1 = _gap(seg_a, seg_b, ns, n, g)
             if g1 >= g0:
-                tails[g] = _ramp_tails(g0, g1, edges, g - 1, g) if known \
-                    else _tails(g0, g1, edges, g - 1, g)  # fmt: skip
+                tails[g] = _tails(g0, g1, edges, g - 1, g)
         again = False
         for k in range(ns):
             if not (edges[0, k] > 0.0):
