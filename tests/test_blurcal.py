@@ -152,16 +152,23 @@ def test_rig_blur_writes_the_crosstalk_that_the_pipeline_then_subtracts(steps, t
     assert fixed.state()["pipeline"]["_leak_known"].sum() == 0
 
 
-@pytest.mark.parametrize("value", [-0.01, 0.2, "0.04"])
-def test_bad_crosstalk_field_is_one_line(value, tmp_path, capsys):
+def rig_check_error(tmp_path, capsys, field, value):
+    """``lightflow rig check`` on the example rig with its first pattern's ``field`` set to
+    ``value``: exit status 2 and one line on stderr, which is returned."""
     doc = json.loads(RIG_FILE.read_text())
-    doc["projectors"][0]["patterns"][0]["crosstalk"] = value
+    doc["projectors"][0]["patterns"][0][field] = value
     path = tmp_path / "rig.json"
     path.write_text(json.dumps(doc))
     status = main(["rig", "check", str(path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert status == 2 and len(err) == 1
-    assert "patterns[0].crosstalk" in err[0] and "expected" in err[0]
+    return err[0]
+
+
+@pytest.mark.parametrize("value", [-0.01, 0.2, "0.04"])
+def test_bad_crosstalk_field_is_one_line(value, tmp_path, capsys):
+    err = rig_check_error(tmp_path, capsys, "crosstalk", value)
+    assert "patterns[0].crosstalk" in err and "expected" in err
 
 
 def test_rig_blur_on_moving_lines_is_one_line(tmp_path, capsys):
@@ -179,11 +186,5 @@ def test_rig_blur_on_moving_lines_is_one_line(tmp_path, capsys):
 
 
 def test_bad_blur_field_is_one_line(tmp_path, capsys):
-    doc = json.loads(RIG_FILE.read_text())
-    doc["projectors"][0]["patterns"][0]["blur"] = {"camera_px2": 0.3, "projector_px2": -1}
-    path = tmp_path / "rig.json"
-    path.write_text(json.dumps(doc))
-    status = main(["rig", "check", str(path)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert status == 2 and len(err) == 1
-    assert "patterns[0].blur.projector_px2" in err[0] and "expected 0 or more" in err[0]
+    err = rig_check_error(tmp_path, capsys, "blur", {"camera_px2": 0.3, "projector_px2": -1})
+    assert "patterns[0].blur.projector_px2" in err and "expected 0 or more" in err
