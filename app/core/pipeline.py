@@ -19,6 +19,7 @@ from . import intervals as iv
 from . import overlap as ov
 from . import response as rsp
 from . import snapping
+from .arcs import ArcIntervals
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
 from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
@@ -82,6 +83,10 @@ class PipelineConfig:
     max_depth_std : float
         Pixels whose predicted depth standard deviation exceeds this share of
         their depth get none (cause ``uncertain``).
+    arc_intervals : bool
+        Two projectors with uniform patterns: each band's line interval from the
+        circular arc through its line and its two neighbours, placed at the first
+        pass's depth, instead of the mean spacing (:mod:`lightflow.app.core.arcs`).
     predict_intervals : bool
         Two projectors: where the sparse pattern's measured line interval
         disagrees with the one its dense partner and the rig predict (curved
@@ -118,6 +123,7 @@ class PipelineConfig:
     # chosen on the tuning rigs with their measured blur: 0.03 -> 0.05 took the fan and the
     # balls from 14-34 % to 28-48 % coverage, medians within 3 mm (0.08 added little more)
     max_depth_std: float = 0.05
+    arc_intervals: bool = True
     predict_intervals: bool = True
     interval_depth: bool = True
     measure_overlap: bool = True
@@ -230,6 +236,9 @@ class DepthPipeline:
         gh = self.grid_shape[0]
         self._rows_per_cell = k
         self._row_y = (np.arange(gh)[:, None] * s + first + np.arange(k)[None, :]).ravel()
+        self._arcs = None
+        if cfg.arc_intervals and not rig.single_projector and np.all(self.flow_model.kinds == 0):
+            self._arcs = ArcIntervals(rig, self._row_y)
         # ... and the rows averaged around them
         extra = np.arange(-b.vertical_extra, b.vertical_extra + 1)
         self._read_rows = np.unique(np.clip(self._row_y[:, None] + extra, 0, cam.height - 1))
@@ -447,15 +456,24 @@ class DepthPipeline:
         raw, why = fm.log_ratio, fm.why
         # predicted error of each pixel's depth, and no depth where it is too large
         z_raw, dz_dh = depth_and_slope(self.lut, raw)
+        intervals = grids[:, 1]
+        fix = np.zeros(intervals.shape, np.float32)
+        if self._arcs is not None:
+            # the bands' intervals from the arcs through their lines, at this depth
+            arcs = self._arc_intervals(bands, counts, z_raw)
+            if arcs is not None:
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    fix = np.nan_to_num(np.log(intervals / arcs), nan=0.0).astype(np.float32)
+                intervals = np.where(np.isfinite(arcs), arcs, intervals)
         if self.intervals is not None:
+            fix += self.intervals.correct(intervals, z_raw, curved)
+        if fix.any():
             # a flow is L / B, and a sweep shorter than the line is read against the
             # line's width, B over the pitch: the sweeps are read again with the
-            # predicted interval
-            fix = self.intervals.correct(grids[:, 1], z_raw, curved)
-            if fix.any():
-                fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)
-                raw = fm.log_ratio  # same cells, same causes
-                z_raw, dz_dh = depth_and_slope(self.lut, raw)
+            # corrected intervals
+            fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)
+            raw = fm.log_ratio  # same cells, same causes
+            z_raw, dz_dh = depth_and_slope(self.lut, raw)
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
         # the final smoothing averages the random part further (by its kernel area)
@@ -474,7 +492,7 @@ class DepthPipeline:
         std_grid[~np.isfinite(depth_grid)] = np.nan
         if self.intervals is not None and cfg.interval_depth:
             slow = fm.swept & ((why == cz.STATIC) | (why == cz.UNCERTAIN))
-            self._depth_from_intervals(grids[:, 1], fm.swept, slow, curved, sigma_f, depth_grid,
+            self._depth_from_intervals(intervals, fm.swept, slow, curved, sigma_f, depth_grid,
                                        std_grid)  # fmt: skip
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
@@ -502,8 +520,23 @@ class DepthPipeline:
             cause_counts=counts_by_cause,
             leak_known=bool(cfg.crosstalk != "auto" or self._leak_known.all()),
             warnings=self._warnings(counts_by_cause),
-            intervals_grid=grids[:, 1],
+            intervals_grid=intervals,
         )
+
+    def _arc_intervals(self, bands, counts, depth):
+        """``(2, h, w)`` grid intervals after :class:`ArcIntervals` corrected the bands
+        (in place), or None when no band changed."""
+        cfg = self.config
+        if not self._arcs.correct(bands, counts, depth, self._rows_per_cell, cfg.stride,
+                                  cfg.bands.interval_tolerance):  # fmt: skip
+            return None
+        gh, gw = self.grid_shape
+        out = np.empty((2, 2, gh, gw))
+        fields = np.array([bd.F_LENGTH, bd.F_INTERVAL], np.int64)
+        for p in range(2):
+            bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
+                               fields, out[p])  # fmt: skip
+        return out[:, 1]
 
     def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
                               std_grid) -> None:  # fmt: skip
