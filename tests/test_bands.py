@@ -8,6 +8,7 @@ import pytest
 from lightflow.app.core.bands import (
     BAND_CUT,
     BAND_FAINT,
+    BAND_LIMB,
     F_CENTRE,
     F_INTERVAL,
     F_LENGTH,
@@ -687,15 +688,16 @@ def test_median_from_a_histogram_equals_numpys(dtype, n):
     assert histogram_median(values) == float(np.median(values))
 
 
-def test_outermost_band_where_the_lines_bunch_is_irregular():
+def test_outermost_band_where_the_lines_bunch_waits_for_its_arc():
     """The outermost band's interval is extrapolated from its two spacings on one side.
 
     Where the lines bunch towards a ball's limb the spacing grows faster than linearly and
     that extrapolation comes out short: on the matrix's balls, -4 to -8 % against the
     renderer's truth (-12 % on gen2026's sparse pattern), which read those bands' sweeps
     10-30 % long, a one-sided depth bias (issue 8).  A spacing change of more than half the
-    interval tolerance there marks the band irregular; spacings that change linearly (a
-    tilted plane, within 2 %) keep their extrapolated interval.
+    interval tolerance there marks the band a limb band, without an interval until
+    :mod:`lightflow.app.core.arcs` gives it one; spacings that change linearly (a tilted
+    plane, within 2 %) keep their extrapolated interval.
     """
     L, w, sigma = 14.0, 4.0, 1.0
     limb = FIRST + np.cumsum([0.0, 40.0, 40.0, 40.0, 44.0, 50.0, 60.0])
@@ -708,7 +710,8 @@ def test_outermost_band_where_the_lines_bunch_is_irregular():
         # the spacing beyond the last band, extrapolated linearly
         np.testing.assert_allclose(b[-1, F_INTERVAL], 1.5 * (centres[-1] - centres[-2])
                                    - 0.5 * (centres[-2] - centres[-3]), atol=0.05)  # fmt: skip
-    assert detect_row(band_row(int(limb[-1] + 80), limb, L, w, sigma), 45.0)[-1, F_VALID] == -4.0
+    limb_row = band_row(int(limb[-1] + 80), limb, L, w, sigma)
+    assert detect_row(limb_row, 45.0)[-1, F_VALID] == BAND_LIMB
     b = detect_row(band_row(int(plane[-1] + 80), plane, L, w, sigma), 45.0)
     assert b[-1, F_VALID] == 1.0
     assert b[-1, F_INTERVAL] == pytest.approx(49.0, abs=0.05)

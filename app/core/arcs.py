@@ -36,7 +36,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .bands import BAND_VALID, F_CENTRE, F_INTERVAL, F_VALID
+from .bands import BAND_LIMB, BAND_VALID, F_CENTRE, F_INTERVAL, F_LENGTH, F_RAMP, F_VALID
 from .geometry import lens_coefficients, lens_distort, lens_distort_derivative, undistort_pixels
 from .rig import Rig
 from .threads import run_rows
@@ -48,6 +48,9 @@ NEWTON_TOLERANCE_PX = 1e-3
 #: the arc's interval may differ from the secant's by at most this factor either way
 #: (beyond it the three lines are not on one smooth surface, or a depth is wrong)
 MAX_CHANGE = 1.25
+#: a limb band's two spacings, and its arc interval and the spacing to the next line,
+#: may differ by at most this factor (the lines bunch towards the limb, smoothly)
+LIMB_CHANGE = 1.6
 #: camera columns either side of the band at which the tangent is met (px)
 HALF_STEP_PX = 0.5
 
@@ -77,8 +80,10 @@ class ArcIntervals:
         self.pitch = np.array([pat.pitch_px for _, pat in rig.patterns], np.float64)
 
     def correct(self, bands: np.ndarray, counts: np.ndarray, depth: np.ndarray, rows_per_cell: int,
-                stride: int, interval_tolerance: float) -> int:  # fmt: skip
-        """Scale each eligible band's ``F_INTERVAL`` by the arc's interval over the secant's.
+                stride: int, interval_tolerance: float) -> tuple[int, int]:  # fmt: skip
+        """Scale each eligible band's ``F_INTERVAL`` by the arc's interval over the secant's,
+        and give limb bands (``BAND_LIMB``) the arc's interval through their run's next two
+        lines, valid where it leaves their support a gap.
 
         Parameters
         ----------
@@ -95,16 +100,18 @@ class ArcIntervals:
 
         Returns
         -------
-        int
-            Bands whose interval changed.
+        (int, int)
+            Bands whose interval changed, and of them the limb bands
+            (``BAND_LIMB``) that became valid with it.
         """
         changed = np.zeros(bands.shape[1], np.int64)
+        rescued = np.zeros(bands.shape[1], np.int64)
         depth = np.ascontiguousarray(depth, dtype=np.float64)
         for p in range(2):
             run_rows(_arc_rows, bands.shape[1], bands[p], counts[p], self.rays, depth,
                      rows_per_cell, stride, self.rot[p], self.shift[p], self.k[p], self.lens[p],
-                     self.pitch[p], interval_tolerance, changed)  # fmt: skip
-        return int(changed.sum())
+                     self.pitch[p], interval_tolerance, changed, rescued)  # fmt: skip
+        return int(changed.sum()), int(rescued.sum())
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -178,68 +185,117 @@ def _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, rx, ry):
     return _column(rot, shift, kmat, lens, m * rx, m * ry, m)
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, pitch):
+    """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
+    ``c2``, ``n1`` and ``n2`` lines away (signed, along the row); NaN when it fails."""
+    x0, y0 = _ray(rays, r, c0)
+    ox, oy, oz = x0 * z0, y0 * z0, z0
+    u0 = _column(rot, shift, kmat, lens, ox, oy, oz)
+    # which way the columns run along the row, at the band's depth
+    xa, ya = _ray(rays, r, c0 + HALF_STEP_PX)
+    xb, yb = _ray(rays, r, c0 - HALF_STEP_PX)
+    ua = _column(rot, shift, kmat, lens, xa * z0, ya * z0, z0)
+    ub = _column(rot, shift, kmat, lens, xb * z0, yb * z0, z0)
+    sgn = 1.0 if ua >= ub else -1.0
+    x1, y1 = _ray(rays, r, c1)
+    x2, y2 = _ray(rays, r, c2)
+    z1 = _depth_on_ray(rot, shift, kmat, lens, x1, y1, u0 + n1 * sgn * pitch, z0)
+    z2 = _depth_on_ray(rot, shift, kmat, lens, x2, y2, u0 + n2 * sgn * pitch, z0)
+    if not (z1 > 0.0 and z2 > 0.0):
+        return np.nan
+    ax, ay, az = x1 * z1 - ox, y1 * z1 - oy, z1 - oz
+    cx, cy, cz = x2 * z2 - ox, y2 * z2 - oy, z2 - oz
+    a2 = ax * ax + ay * ay + az * az
+    c2_ = cx * cx + cy * cy + cz * cz
+    # the circle's tangent at the band (the chord's direction when the three are in line)
+    tx = a2 * cx - c2_ * ax
+    ty = a2 * cy - c2_ * ay
+    tz = a2 * cz - c2_ * az
+    ua = _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, xa, ya)
+    ub = _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, xb, yb)
+    du = abs(ua - ub) / (2.0 * HALF_STEP_PX)
+    return pitch / du if du > 0.0 else np.nan
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _depth_near(depth, i, c0, c1, off, stride):
+    """Depth of the cell of ``c0`` in grid row ``i``, else of the nearest cell towards
+    ``c1`` that has one (a limb band's own cell may have none yet)."""
+    gw = depth.shape[1]
+    j0 = int(math.floor((c0 - off) / stride + 0.5))
+    j1 = int(math.floor((c1 - off) / stride + 0.5))
+    step = 1 if j1 >= j0 else -1
+    j = j0
+    while True:
+        if 0 <= j < gw and depth[i, j] > 0.0:
+            return depth[i, j]
+        if j == j1:
+            return np.nan
+        j += step
+
+
 @nb.njit(cache=True, error_model="numpy", nogil=True)
 def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, pitch, itol, changed,
-              r0, r1):  # fmt: skip
+              rescued, r0, r1):  # fmt: skip
     """:meth:`ArcIntervals.correct` on measured rows ``r0 .. r1`` of one pattern."""
-    gh, gw = depth.shape
+    gh = depth.shape[0]
     off = 0.5 * (stride - 1)
     for r in range(r0, r1):
         n = counts[r]
         i = r // k
         if i >= gh:
             continue
-        for b in range(1, n - 1):
-            if bands[r, b, F_VALID] != BAND_VALID:
-                continue
+        for b in range(n):
+            code = bands[r, b, F_VALID]
             c0 = bands[r, b, F_CENTRE]
-            cp = bands[r, b - 1, F_CENTRE]
-            cn = bands[r, b + 1, F_CENTRE]
-            d1 = c0 - cp
-            d2 = cn - c0
-            if not (d1 > 2.0 and d2 > 2.0):
-                continue
-            plain = 0.5 * (d1 + d2)
-            # one smooth surface: the detector's plain interval (or snapping's correction
-            # of it), not one from a side of a depth edge or a trend
-            if abs(d1 - d2) > itol * plain or abs(bands[r, b, F_INTERVAL] / plain - 1.0) > 0.1:
-                continue
-            jc = int(math.floor((c0 - off) / stride + 0.5))
-            if jc < 0 or jc >= gw:
-                continue
-            z0 = depth[i, jc]
-            if not z0 > 0.0:
-                continue
-            x0, y0 = _ray(rays, r, c0)
-            u0 = _column(rot, shift, kmat, lens, x0 * z0, y0 * z0, z0)
-            # which way the columns run along the row, at the band's depth
-            xa, ya = _ray(rays, r, c0 + HALF_STEP_PX)
-            xb, yb = _ray(rays, r, c0 - HALF_STEP_PX)
-            ua = _column(rot, shift, kmat, lens, xa * z0, ya * z0, z0)
-            ub = _column(rot, shift, kmat, lens, xb * z0, yb * z0, z0)
-            sgn = 1.0 if ua >= ub else -1.0
-            xp, yp = _ray(rays, r, cp)
-            xn, yn = _ray(rays, r, cn)
-            zp = _depth_on_ray(rot, shift, kmat, lens, xp, yp, u0 - sgn * pitch, z0)
-            zn = _depth_on_ray(rot, shift, kmat, lens, xn, yn, u0 + sgn * pitch, z0)
-            if not (zp > 0.0 and zn > 0.0):
-                continue
-            ox, oy, oz = x0 * z0, y0 * z0, z0
-            ax, ay, az = xp * zp - ox, yp * zp - oy, zp - oz
-            cx, cy, cz = xn * zn - ox, yn * zn - oy, zn - oz
-            a2 = ax * ax + ay * ay + az * az
-            c2 = cx * cx + cy * cy + cz * cz
-            # the circle's tangent at the band (the chord's direction on a line)
-            tx = a2 * cx - c2 * ax
-            ty = a2 * cy - c2 * ay
-            tz = a2 * cz - c2 * az
-            ua = _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, xa, ya)
-            ub = _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, xb, yb)
-            du = abs(ua - ub) / (2.0 * HALF_STEP_PX)
-            if not du > 0.0:
-                continue
-            arc = pitch / du
-            if not (plain / MAX_CHANGE < arc < plain * MAX_CHANGE):
-                continue
-            bands[r, b, F_INTERVAL] *= arc / plain
-            changed[r] += 1
+            if code == BAND_VALID and 0 < b < n - 1:
+                cp = bands[r, b - 1, F_CENTRE]
+                cn = bands[r, b + 1, F_CENTRE]
+                d1 = c0 - cp
+                d2 = cn - c0
+                if not (d1 > 2.0 and d2 > 2.0):
+                    continue
+                plain = 0.5 * (d1 + d2)
+                # one smooth surface: the detector's plain interval (or snapping's
+                # correction of it), not one from a side of a depth edge or a trend
+                if abs(d1 - d2) > itol * plain or abs(bands[r, b, F_INTERVAL] / plain - 1.0) > 0.1:
+                    continue
+                z0 = _depth_near(depth, i, c0, c0, off, stride)
+                if not z0 > 0.0:
+                    continue
+                arc = _arc_interval(rays, r, c0, z0, cp, -1.0, cn, 1.0, rot, shift, kmat, lens,
+                                    pitch)  # fmt: skip
+                if not (plain / MAX_CHANGE < arc < plain * MAX_CHANGE):
+                    continue
+                bands[r, b, F_INTERVAL] *= arc / plain
+                changed[r] += 1
+            elif code == BAND_LIMB:
+                # the outermost band of a run: its two neighbours on the run's side
+                s = 1 if b + 1 < n and np.isfinite(bands[r, b + 1, F_CENTRE]) else -1
+                if not (0 <= b + 2 * s < n):
+                    continue
+                c1 = bands[r, b + s, F_CENTRE]
+                c2 = bands[r, b + 2 * s, F_CENTRE]
+                d1 = abs(c1 - c0)
+                d2 = abs(c2 - c1)
+                # spacings that jump rather than bunch: not a smooth limb (a grazing
+                # surface, or another object's lines)
+                if not (d1 > 2.0 and d2 > 2.0 and max(d1, d2) < LIMB_CHANGE * min(d1, d2)):
+                    continue
+                z0 = _depth_near(depth, i, c0, c1, off, stride)
+                if not z0 > 0.0:
+                    continue
+                arc = _arc_interval(rays, r, c0, z0, c1, float(s), c2, 2.0 * s, rot, shift,
+                                    kmat, lens, pitch)  # fmt: skip
+                if not (d1 / LIMB_CHANGE < arc < d1 * LIMB_CHANGE):
+                    continue
+                # the support must leave a gap (as the detector's test, whose interval
+                # was the straight extrapolation)
+                support = bands[r, b, F_LENGTH] + 2.0 * bands[r, b, F_RAMP] / 0.6
+                if support > arc:
+                    continue
+                bands[r, b, F_INTERVAL] = arc
+                bands[r, b, F_VALID] = BAND_VALID
+                changed[r] += 1
+                rescued[r] += 1

@@ -61,6 +61,9 @@ BAND_FAINT = -1.0  # too little contrast, or no clean half-height crossings
 BAND_CUT = -2.0  # one sharp side (an object edge) or running into the image border
 BAND_OVERLAP = -3.0  # no clean gap to a neighbour: bands merge
 BAND_IRREGULAR = -4.0  # dips inside (print, an edge), intervals or heights that disagree
+#: the outermost band of a run whose spacings change too fast for a straight extrapolation
+#: (a ball's limb): no interval here; :mod:`.arcs` gives it one once a depth is known
+BAND_LIMB = -5.0
 #: gaps on each side searched for the floor under the bands (:func:`bands_in_row`), and
 #: how far above it (a share of the band's height) both gaps of a band may lie: swept
 #: lines that overlap raise the gaps by at least the height of the pulses they leave
@@ -1124,11 +1127,13 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
             # against the line it makes too narrow (read against the true line width the
             # sweep is right): +28 % on gen2026's sparse pattern, whose rows on a ball hold
             # few bands, so that a third of its cells came from these, a one-sided bias of
-            # the flow ratio (+38 mm).  The interval is not known there: no depth
+            # the flow ratio (+38 mm).  The interval is not known here (overlap is judged
+            # against the short extrapolation: strict): the arc through the band's line and
+            # the next two gives it one once a depth is known (:mod:`.arcs`)
+            overlap = out[k, F_LENGTH] + ramp > interval - min_gap
             if abs(d1 - d2) > 0.5 * itol * interval:
-                out[k, F_VALID] = BAND_IRREGULAR
-                continue
-            if out[k, F_LENGTH] + ramp > interval - min_gap:
+                out[k, F_VALID] = BAND_IRREGULAR if overlap else BAND_LIMB
+            elif overlap:
                 out[k, F_VALID] = BAND_OVERLAP
             continue
         d1 = c0 - cp

@@ -15,6 +15,7 @@ from .bands import (
     BAND_CUT,
     BAND_FAINT,
     BAND_IRREGULAR,
+    BAND_LIMB,
     BAND_OVERLAP,
     F_END,
     F_RAMP,
@@ -72,7 +73,7 @@ def _band_code_cause(code):
         return CUT
     if code == BAND_OVERLAP:
         return OVERLAP
-    if code == BAND_IRREGULAR:
+    if code == BAND_IRREGULAR or code == BAND_LIMB:
         return IRREGULAR
     return FAINT  # segments never measured are faint ones
 

@@ -626,7 +626,9 @@ class FlowModel:
         return self.recombine(grids, params, periodic)
 
     def reread(self, first: FlowMaps, grids: np.ndarray, fix: np.ndarray,
-               params: FlowParams, periodic: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
+               params: FlowParams, periodic: np.ndarray | None = None,
+               added: np.ndarray | None = None,
+               fallback: np.ndarray | None = None) -> FlowMaps:  # fmt: skip
         """The flows of ``first`` read again with the line intervals corrected by ``fix``.
 
         ``fix`` is per pattern ``log(B_measured / B_predicted)`` (:mod:`.intervals`).
@@ -639,6 +641,13 @@ class FlowModel:
         ``first`` (the correction is smooth, not noise of the sweeps); where a sweep
         read again is no longer measurable, the first reading stands, its ``L / B``
         over the predicted interval.  ``periodic``: as for :meth:`combine`.
+
+        ``added`` (bool per cell): cells whose bands ``grids`` has anew or changed
+        besides their intervals (limb bands that got an interval, :mod:`.arcs`); they are
+        read again too, and one without a first reading takes the second whole (its
+        causes and errors).  ``fallback``: the change of the intervals since ``first``
+        where it is more than ``fix`` (``grids`` holds corrected intervals already), for
+        the cells whose second reading fails.
         """
         # only the intervals change: the other fields are read from ``grids`` (a copy of
         # them all cost 1.1 ms).  A view of a larger buffer, like ``grids[:, 1]``: the
@@ -646,13 +655,26 @@ class FlowModel:
         fixed = np.empty((2, 2, *grids.shape[2:]))[:, 0]
         np.multiply(grids[:, 1], np.exp(-fix), out=fixed)
         # a cell without a correction reads as before (the same inputs): not read again
-        second = self.recombine(grids, params, periodic, first, (fix != 0).any(axis=0), fixed)
+        todo = (fix != 0).any(axis=0)
+        if added is not None:
+            todo |= added
+        second = self.recombine(grids, params, periodic, first, todo, fixed)
         again = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
-        log_ratio = np.where(again, second.log_ratio, first.log_ratio + fix[0] - fix[1])
-        flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(fix[p]))
-                 .astype(np.float32) for p in range(2)]  # fmt: skip
-        return FlowMaps(log_ratio.astype(np.float32), flows, first.blur_px, first.lr_var,
-                        first.lr_sys, first.why, first.swept)  # fmt: skip
+        shift = fix if fallback is None else fallback
+        log_ratio = np.where(again, second.log_ratio, first.log_ratio + shift[0] - shift[1])
+        flows = [np.where(again, second.flows[p], first.flows[p] * np.exp(shift[p]))
+                 for p in range(2)]  # fmt: skip
+        lr_var, lr_sys, why, swept = first.lr_var, first.lr_sys, first.why, first.swept
+        if added is not None:
+            new = added & ~np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
+            log_ratio = np.where(new, second.log_ratio, log_ratio)
+            flows = [np.where(new, second.flows[p], flows[p]) for p in range(2)]
+            lr_var = np.where(new, second.lr_var, lr_var)
+            lr_sys = np.where(new, second.lr_sys, lr_sys)
+            why = np.where(new, second.why, why)
+            swept = swept | (added & second.swept)
+        return FlowMaps(log_ratio.astype(np.float32), [f.astype(np.float32) for f in flows],
+                        first.blur_px, lr_var, lr_sys, why, swept)  # fmt: skip
 
     def recombine(self, grids: np.ndarray, params: FlowParams,
                   periodic: np.ndarray | None = None, first: FlowMaps | None = None,

@@ -456,23 +456,27 @@ class DepthPipeline:
         raw, why = fm.log_ratio, fm.why
         # predicted error of each pixel's depth, and no depth where it is too large
         z_raw, dz_dh = depth_and_slope(self.lut, raw)
-        intervals = grids[:, 1]
-        fix = np.zeros(intervals.shape, np.float32)
+        # a flow is L / B, and a sweep shorter than the line is read against the line's
+        # width, B over the pitch: where the intervals are corrected, the sweeps are read
+        # again with them
+        first = grids
+        added = fallback = None
         if self._arcs is not None:
             # the bands' intervals from the arcs through their lines, at this depth
-            arcs = self._arc_intervals(bands, counts, z_raw)
-            if arcs is not None:
+            grids, added = self._arc_intervals(bands, counts, z_raw, grids)
+            if added is not None:
                 with np.errstate(invalid="ignore", divide="ignore"):
-                    fix = np.nan_to_num(np.log(intervals / arcs), nan=0.0).astype(np.float32)
-                intervals = np.where(np.isfinite(arcs), arcs, intervals)
+                    fallback = np.nan_to_num(np.log(first[:, 1] / grids[:, 1]), nan=0.0,
+                                             posinf=0.0, neginf=0.0).astype(np.float32)  # fmt: skip
+                added |= (fallback != 0).any(axis=0)
+        intervals = grids[:, 1]
+        fix = np.zeros(intervals.shape, np.float32)
         if self.intervals is not None:
-            fix += self.intervals.correct(intervals, z_raw, curved)
-        if fix.any():
-            # a flow is L / B, and a sweep shorter than the line is read against the
-            # line's width, B over the pitch: the sweeps are read again with the
-            # corrected intervals
-            fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic)
-            raw = fm.log_ratio  # same cells, same causes
+            fix = self.intervals.correct(intervals, z_raw, curved)
+        if fix.any() or added is not None:
+            fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic, added,
+                                        None if fallback is None else fallback + fix)  # fmt: skip
+            raw, why = fm.log_ratio, fm.why
             z_raw, dz_dh = depth_and_slope(self.lut, raw)
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
@@ -523,20 +527,30 @@ class DepthPipeline:
             intervals_grid=intervals,
         )
 
-    def _arc_intervals(self, bands, counts, depth):
-        """``(2, h, w)`` grid intervals after :class:`ArcIntervals` corrected the bands
-        (in place), or None when no band changed."""
+    def _arc_intervals(self, bands, counts, depth, grids):
+        """:class:`ArcIntervals` on the bands (in place), and the grids measured again.
+
+        Returns ``(grids, added)``: the new grids and, per cell, whether its fields
+        changed besides the interval (a limb band became valid nearby); the old
+        ``grids`` and None when no band changed.
+        """
         cfg = self.config
-        if not self._arcs.correct(bands, counts, depth, self._rows_per_cell, cfg.stride,
-                                  cfg.bands.interval_tolerance):  # fmt: skip
-            return None
+        changed, rescued = self._arcs.correct(bands, counts, depth, self._rows_per_cell,
+                                              cfg.stride, cfg.bands.interval_tolerance)  # fmt: skip
+        if not changed:
+            return grids, None
         gh, gw = self.grid_shape
-        out = np.empty((2, 2, gh, gw))
-        fields = np.array([bd.F_LENGTH, bd.F_INTERVAL], np.int64)
+        new = np.empty_like(grids)
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
-                               fields, out[p])  # fmt: skip
-        return out[:, 1]
+                               self._fields, new[p])  # fmt: skip
+        added = np.zeros((gh, gw), bool)
+        if rescued:
+            # fields other than the interval (NaN-aware: a cell that gained a band)
+            for f in (0, 2, 3):
+                same = (new[:, f] == grids[:, f]) | (np.isnan(new[:, f]) & np.isnan(grids[:, f]))
+                added |= ~same.all(axis=0)
+        return new, added
 
     def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
                               std_grid) -> None:  # fmt: skip
