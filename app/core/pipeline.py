@@ -815,18 +815,9 @@ class DepthPipeline:
             reach = 0.5 * float(self._windows[p])  # about one line interval
             cz.band_causes(bands[p], counts[p], self._rows_per_cell, self.config.stride, gw,
                            reach, per_pattern[p])  # fmt: skip
-            # between valid bands (measured) the band stage let the cell through
-            per_pattern[p][np.isfinite(grids[p, 1])] = cz.DEPTH
-        no_lines = (per_pattern == cz.NO_LINES).any(axis=0)
-        band = np.where(per_pattern[0] != cz.DEPTH, per_pattern[0], per_pattern[1])
-        causes = np.where(band != cz.DEPTH, band, why)
-        causes[no_lines] = cz.NO_LINES
-        # dropped by the robust smoothing, or a ratio outside the working range
-        left = causes == cz.DEPTH
-        causes[left & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
-        causes[left & np.isfinite(log_ratio) & ~np.isfinite(depth_grid)] = cz.DEPTH_RANGE
-        # holes filled by the smoothing have a depth whatever their own cause
-        causes[np.isfinite(depth_grid)] = cz.DEPTH
+        causes = np.empty((gh, gw), np.uint8)
+        # between valid bands (a finite interval) the band stage let the cell through
+        cz.merge_causes(per_pattern, grids[:, 1], why, log_ratio, depth_grid, causes)
         return causes
 
     def _warnings(self, counts) -> list[str]:
