@@ -846,7 +846,15 @@ def _print_tiles(raw, filled, rows, tile) -> np.ndarray:
     h, w = raw.shape[:2]
     th, tw = -(-h // tile), -(-w // tile)
     flat_raw = raw.reshape(h, -1)
-    changed = cv2.compare(filled.reshape(h, -1)[rows], flat_raw[rows], cv2.CMP_NE)
+    flat_filled = filled.reshape(h, -1)
+    step = int(rows[1] - rows[0]) if len(rows) > 1 else 1
+    if step > 0 and len(rows) and np.all(np.diff(rows) == step):
+        # evenly spaced rows (every grid row's): strided views, which OpenCV reads in
+        # place, instead of copies of the rows (0.3-1.6 ms)
+        sel = slice(int(rows[0]), int(rows[-1]) + 1, step)
+        changed = cv2.compare(flat_filled[sel], flat_raw[sel], cv2.CMP_NE)
+    else:
+        changed = cv2.compare(flat_filled[rows], flat_raw[rows], cv2.CMP_NE)
     # sums over the rows of each tile row, then over each tile's columns
     bounds = np.searchsorted(rows, np.arange(th + 1) * tile)
     per_row = np.zeros((th, tw * tile * flat_raw.shape[1] // w), np.float32)
