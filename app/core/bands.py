@@ -378,15 +378,35 @@ def sliding_mid(x, win, out):
     r = max(1, (win // q) // 2)
     s = np.empty((4, nb_))
     bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
-    for b in range(nb_):
-        block = x[b * q : min(n, b * q + q)]
+    # whole blocks two at a time: two chains of compares that the CPU overlaps (one chain
+    # waits on every compare), each block's samples in their order (the same values)
+    b = 0
+    while b + 2 <= n // q:
+        b0 = x[b * q : b * q + q]
+        b1 = x[b * q + q : b * q + 2 * q]
+        hi0 = b0[0]
+        lo0 = b0[0]
+        hi1 = b1[0]
+        lo1 = b1[0]
+        for t in range(1, q):
+            hi0 = max(hi0, b0[t])
+            lo0 = min(lo0, b0[t])
+            hi1 = max(hi1, b1[t])
+            lo1 = min(lo1, b1[t])
+        bmax[b] = hi0
+        bmin[b] = lo0
+        bmax[b + 1] = hi1
+        bmin[b + 1] = lo1
+        b += 2
+    for k in range(b, nb_):
+        block = x[k * q : min(n, k * q + q)]
         hi = block[0]
         lo = block[0]
         for t in range(1, block.shape[0]):
             hi = max(hi, block[t])
             lo = min(lo, block[t])
-        bmax[b] = hi
-        bmin[b] = lo
+        bmax[k] = hi
+        bmin[k] = lo
     # loops, not wmax[:] = bmax: a slice assignment makes numba compile its
     # shape-mismatch message (1.5 s of a cold start's CPU)
     for b in range(nb_):
