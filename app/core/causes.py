@@ -115,13 +115,19 @@ def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
         a1, b1 = _support(bands, r, 1) if n > 1 else (0.0, 0.0)
         for j in range(gw):
             x = j * stride + off
-            # bands are in column order: advance while the next one is nearer
-            while q + 1 < n and _distance(a1, b1, x) <= _distance(a, b, x):
+            # bands are in column order: advance while the next one is nearer (each
+            # distance computed once per cell)
+            d = _distance(a, b, x)
+            while q + 1 < n:
+                d1 = _distance(a1, b1, x)
+                if d1 > d:
+                    break
                 q += 1
                 a, b = a1, b1
+                d = d1
                 if q + 1 < n:
                     a1, b1 = _support(bands, r, q + 1)
-            if _distance(a, b, x) > reach:
+            if d > reach:
                 out[i, j] = NO_LINES
             elif bands[r, q, F_VALID] > 0:
                 out[i, j] = DEPTH
