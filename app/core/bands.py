@@ -381,15 +381,35 @@ def sliding_mid(x, win, out):
     r = max(1, (win // q) // 2)
     s = np.empty((4, nb_))
     bmax, bmin, wmax, wmin = s[0], s[1], s[2], s[3]
-    for b in range(nb_):
-        block = x[b * q : min(n, b * q + q)]
+    # whole blocks two at a time: two chains of compares that the CPU overlaps (one chain
+    # waits on every compare), each block's samples in their order (the same values)
+    b = 0
+    while b + 2 <= n // q:
+        b0 = x[b * q : b * q + q]
+        b1 = x[b * q + q : b * q + 2 * q]
+        hi0 = b0[0]
+        lo0 = b0[0]
+        hi1 = b1[0]
+        lo1 = b1[0]
+        for t in range(1, q):
+            hi0 = max(hi0, b0[t])
+            lo0 = min(lo0, b0[t])
+            hi1 = max(hi1, b1[t])
+            lo1 = min(lo1, b1[t])
+        bmax[b] = hi0
+        bmin[b] = lo0
+        bmax[b + 1] = hi1
+        bmin[b + 1] = lo1
+        b += 2
+    for k in range(b, nb_):
+        block = x[k * q : min(n, k * q + q)]
         hi = block[0]
         lo = block[0]
         for t in range(1, block.shape[0]):
             hi = max(hi, block[t])
             lo = min(lo, block[t])
-        bmax[b] = hi
-        bmin[b] = lo
+        bmax[k] = hi
+        bmin[k] = lo
     # loops, not wmax[:] = bmax: a slice assignment makes numba compile its
     # shape-mismatch message (1.5 s of a cold start's CPU)
     for b in range(nb_):
@@ -872,7 +892,7 @@ def _gap(seg_a, seg_b, ns, n, g):
 #: rows of :func:`bands_in_row`'s scratch (one column per gap or band) before the
 #: rows of :func:`_band_shape`'s
 (_W_GAP_LEVEL, _W_GAP_DIP, _W_GAP_DONE, _W_USED_LEFT, _W_USED_RIGHT, _W_TAILS, _W_LOW, _W_FLOOR,
- _W_EDGES) = range(9)  # fmt: skip
+ _W_MOVED, _W_EDGES) = range(10)  # fmt: skip
 _N_WORK = _W_EDGES + 6
 
 
@@ -973,8 +993,12 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
     # to TAIL_PASSES passes; else an erf with the band's own ramp, once.  Isolated bands
     # are untouched.
     tails = work[_W_TAILS]
+    # the bands measured again by the last pass (all before the first): a gap's tails
+    # depend only on the two bands beside it and their neighbours (the spacing)
+    moved = work[_W_MOVED]
     for g in range(ns + 1):
         tails[g] = 0.0
+        moved[g] = 1.0
     known = edge[0] > 0.0
     for _ in range(TAIL_PASSES if known and ns > 1 else 1 if ns > 1 else 0):
         # per band: height, left and right half-height points, edge sigma (erf), line
@@ -1003,9 +1027,17 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
         for g in range(ns + 1):
             if not ((g > 0 and edges[0, g - 1] > 0.0) or (g < ns and edges[0, g] > 0.0)):
                 continue
+            # none of bands g - 2 .. g + 1 measured again: the same tails as last pass
+            near = 0.0
+            for q in range(max(0, g - 2), min(ns, g + 2)):
+                near += moved[q]
+            if near == 0.0:
+                continue
             g0, g1 = _gap(seg_a, seg_b, ns, n, g)
             if g1 >= g0:
                 tails[g] = _tails(g0, g1, edges, g - 1, g)
+        for k in range(ns):
+            moved[k] = 0.0
         again = False
         for k in range(ns):
             if not (edges[0, k] > 0.0):
@@ -1018,6 +1050,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
             if abs(tl - used_l[k]) + abs(tr - used_r[k]) < 0.001 * edges[0, k]:
                 continue
             again = True
+            moved[k] = 1.0
             used_l[k] = tl
             used_r[k] = tr
             gl0, gl1 = _gap(seg_a, seg_b, ns, n, k)

@@ -116,18 +116,72 @@ def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
         a1, b1 = _support(bands, r, 1) if n > 1 else (0.0, 0.0)
         for j in range(gw):
             x = j * stride + off
-            # bands are in column order: advance while the next one is nearer
-            while q + 1 < n and _distance(a1, b1, x) <= _distance(a, b, x):
+            # bands are in column order: advance while the next one is nearer (each
+            # distance computed once per cell)
+            d = _distance(a, b, x)
+            while q + 1 < n:
+                d1 = _distance(a1, b1, x)
+                if d1 > d:
+                    break
                 q += 1
                 a, b = a1, b1
+                d = d1
                 if q + 1 < n:
                     a1, b1 = _support(bands, r, q + 1)
-            if _distance(a, b, x) > reach:
+            if d > reach:
                 out[i, j] = NO_LINES
             elif bands[r, q, F_VALID] > 0:
                 out[i, j] = DEPTH
             else:
                 out[i, j] = _band_code_cause(bands[r, q, F_VALID])
+
+
+def merge_causes(per_pattern, intervals, why, log_ratio, depth, out):
+    """One cause per grid cell from the patterns' band causes and the flow stage's.
+
+    A cell with a depth has ``DEPTH``; else ``NO_LINES`` when a pattern has no line
+    near it; else the first pattern's band cause, then the second's, then the flow
+    stage's ``why``; a cell left with ``DEPTH`` then lost it in the smoothing
+    (``INCONSISTENT``: no log ratio) or in the depth table (``DEPTH_RANGE``).  One pass
+    over the grid (the numpy expressions it replaces cost a temporary each).
+
+    Parameters
+    ----------
+    per_pattern : numpy.ndarray
+        ``(2, h, w)`` uint8 :func:`band_causes` of each pattern.
+    intervals : numpy.ndarray
+        ``(2, h, w)`` line intervals on the grid: a finite one means valid bands around
+        the cell (the band stage let it through, ``DEPTH``).
+    why : numpy.ndarray
+        ``(h, w)`` uint8 cause of the flow stage.
+    log_ratio, depth : numpy.ndarray
+        ``(h, w)`` smoothed log flow ratio and depth (NaN: none).
+    out : numpy.ndarray
+        ``(h, w)`` uint8 output.
+    """
+    # rows of cells on a thread per core (the kernel releases the GIL)
+    run_rows(_merge_causes, out.shape[0], per_pattern, intervals, why, log_ratio, depth, out)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _merge_causes(per_pattern, intervals, why, log_ratio, depth, out, i0, i1):
+    """:func:`merge_causes` on the grid rows ``i0 .. i1``."""
+    gw = out.shape[1]
+    for i in range(i0, i1):
+        for j in range(gw):
+            if np.isfinite(depth[i, j]):
+                out[i, j] = DEPTH  # holes filled by the smoothing too, whatever their cause
+                continue
+            c0 = DEPTH if np.isfinite(intervals[0, i, j]) else per_pattern[0, i, j]
+            c1 = DEPTH if np.isfinite(intervals[1, i, j]) else per_pattern[1, i, j]
+            if c0 == NO_LINES or c1 == NO_LINES:
+                out[i, j] = NO_LINES
+                continue
+            c = c0 if c0 != DEPTH else c1 if c1 != DEPTH else why[i, j]
+            if c == DEPTH:
+                # dropped by the robust smoothing, or a ratio outside the working range
+                c = INCONSISTENT if not np.isfinite(log_ratio[i, j]) else DEPTH_RANGE
+            out[i, j] = c
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

@@ -862,18 +862,9 @@ class DepthPipeline:
             reach = 0.5 * float(self._windows[p])  # about one line interval
             cz.band_causes(bands[p], counts[p], self._rows_per_cell, self.config.stride, gw,
                            reach, per_pattern[p])  # fmt: skip
-            # between valid bands (measured) the band stage let the cell through
-            per_pattern[p][np.isfinite(grids[p, 1])] = cz.DEPTH
-        no_lines = (per_pattern == cz.NO_LINES).any(axis=0)
-        band = np.where(per_pattern[0] != cz.DEPTH, per_pattern[0], per_pattern[1])
-        causes = np.where(band != cz.DEPTH, band, why)
-        causes[no_lines] = cz.NO_LINES
-        # dropped by the robust smoothing, or a ratio outside the working range
-        left = causes == cz.DEPTH
-        causes[left & ~np.isfinite(log_ratio)] = cz.INCONSISTENT
-        causes[left & np.isfinite(log_ratio) & ~np.isfinite(depth_grid)] = cz.DEPTH_RANGE
-        # holes filled by the smoothing have a depth whatever their own cause
-        causes[np.isfinite(depth_grid)] = cz.DEPTH
+        causes = np.empty((gh, gw), np.uint8)
+        # between valid bands (a finite interval) the band stage let the cell through
+        cz.merge_causes(per_pattern, grids[:, 1], why, log_ratio, depth_grid, causes)
         return causes
 
     def _warnings(self, counts) -> list[str]:
@@ -902,7 +893,15 @@ def _print_tiles(raw, filled, rows, tile) -> np.ndarray:
     h, w = raw.shape[:2]
     th, tw = -(-h // tile), -(-w // tile)
     flat_raw = raw.reshape(h, -1)
-    changed = cv2.compare(filled.reshape(h, -1)[rows], flat_raw[rows], cv2.CMP_NE)
+    flat_filled = filled.reshape(h, -1)
+    step = int(rows[1] - rows[0]) if len(rows) > 1 else 1
+    if step > 0 and len(rows) and np.all(np.diff(rows) == step):
+        # evenly spaced rows (every grid row's): strided views, which OpenCV reads in
+        # place, instead of copies of the rows (0.3-1.6 ms)
+        sel = slice(int(rows[0]), int(rows[-1]) + 1, step)
+        changed = cv2.compare(flat_filled[sel], flat_raw[sel], cv2.CMP_NE)
+    else:
+        changed = cv2.compare(flat_filled[rows], flat_raw[rows], cv2.CMP_NE)
     # sums over the rows of each tile row, then over each tile's columns
     bounds = np.searchsorted(rows, np.arange(th + 1) * tile)
     per_row = np.zeros((th, tw * tile * flat_raw.shape[1] // w), np.float32)
