@@ -39,6 +39,7 @@ import numpy as np
 from .bands import BAND_LIMB, BAND_VALID, F_CENTRE, F_INTERVAL, F_LENGTH, F_RAMP, F_VALID
 from .geometry import lens_coefficients, lens_distort, lens_distort_derivative, undistort_pixels
 from .rig import Rig
+from .snapping import column_direction
 from .threads import run_rows
 
 #: Newton steps for a neighbour's depth along its ray (converges in 2-4)
@@ -48,16 +49,15 @@ NEWTON_TOLERANCE_PX = 1e-3
 #: the arc's interval may differ from the secant's by at most this factor either way
 #: (beyond it the three lines are not on one smooth surface, or a depth is wrong)
 MAX_CHANGE = 1.25
-#: an arc that changes the interval by less than this share leaves it alone: on planes
-#: the two differ by the centres' noise (boards: a median of 0.003 %, 1 % of the bands
-#: beyond 0.2 %), on balls by the surface's bend (98 % of the bands beyond 0.2 %), and
-#: each changed cell is read again
+#: an arc that changes the interval by less than this share leaves it alone, and so does
+#: one that no band beside, above or below agrees with (by half as much, the same way):
+#: on planes the two differ by the centres' noise (boards: a median of 0.003 %, 1 % of
+#: the bands beyond 0.2 %, scattered), on balls by the surface's bend (98 % of the bands
+#: beyond 0.2 %); each changed cell is read again
 MIN_CHANGE = 0.002
 #: a limb band's two spacings, and its arc interval and the spacing to the next line,
 #: may differ by at most this factor (the lines bunch towards the limb, smoothly)
 LIMB_CHANGE = 1.6
-#: camera columns either side of the band at which the tangent is met (px)
-HALF_STEP_PX = 0.5
 
 
 class ArcIntervals:
@@ -69,9 +69,12 @@ class ArcIntervals:
         Two projectors with uniform patterns.
     row_y : numpy.ndarray
         The image rows the band detector measures (one per row of its output).
+    depth : float
+        A depth (m) in the working range, at which the direction of each projector's
+        columns along the camera rows is found.
     """
 
-    def __init__(self, rig: Rig, row_y: np.ndarray):
+    def __init__(self, rig: Rig, row_y: np.ndarray, depth: float = 1.0):
         cam = rig.camera
         cols = np.arange(cam.width, dtype=np.float64)
         pix = np.stack(np.broadcast_arrays(cols[None, :], np.asarray(row_y, np.float64)[:, None]),
@@ -82,10 +85,16 @@ class ArcIntervals:
         self.shift = np.stack([np.asarray(proj.t, np.float64) for proj, _ in rig.patterns])
         self.k = np.stack([np.asarray(proj.K, np.float64) for proj, _ in rig.patterns])
         self.lens = np.stack([lens_coefficients(proj.dist) for proj, _ in rig.patterns])
+        #: per projector, whether its lens distorts (else depths along rays in closed form)
+        self.distorted = np.array([bool(np.any(np.asarray(proj.dist, float)))
+                                   for proj, _ in rig.patterns])  # fmt: skip
         self.pitch = np.array([pat.pitch_px for _, pat in rig.patterns], np.float64)
+        #: per projector, +1 where its columns grow along the camera rows, else -1
+        self.direction = np.array([float(column_direction(cam, proj, depth))
+                                   for proj, _ in rig.patterns])  # fmt: skip
 
     def correct(self, bands: np.ndarray, counts: np.ndarray, depth: np.ndarray, rows_per_cell: int,
-                stride: int, interval_tolerance: float) -> tuple[int, int]:  # fmt: skip
+                stride: int, interval_tolerance: float) -> tuple[int, int, np.ndarray]:  # fmt: skip
         """Scale each eligible band's ``F_INTERVAL`` by the arc's interval over the secant's,
         and give limb bands (``BAND_LIMB``) the arc's interval through their run's next two
         lines, valid where it leaves their support a gap.
@@ -105,18 +114,24 @@ class ArcIntervals:
 
         Returns
         -------
-        (int, int)
-            Bands whose interval changed, and of them the limb bands
-            (``BAND_LIMB``) that became valid with it.
+        (int, int, numpy.ndarray)
+            Bands whose interval was scaled, limb bands (``BAND_LIMB``) that became
+            valid with their arc's, and the grid rows that hold either.
         """
-        changed = np.zeros(bands.shape[1], np.int64)
-        rescued = np.zeros(bands.shape[1], np.int64)
+        rows = bands.shape[1]
+        changed = np.zeros(rows, np.int64)
+        rescued = np.zeros(rows, np.int64)
         depth = np.ascontiguousarray(depth, dtype=np.float64)
+        # each band's arc over its secant first, then those that agree with a neighbour's
+        ratio = np.empty(bands.shape[1:3])
         for p in range(2):
-            run_rows(_arc_rows, bands.shape[1], bands[p], counts[p], self.rays, depth,
-                     rows_per_cell, stride, self.rot[p], self.shift[p], self.k[p], self.lens[p],
-                     self.pitch[p], interval_tolerance, changed, rescued)  # fmt: skip
-        return int(changed.sum()), int(rescued.sum())
+            run_rows(_arc_rows, rows, bands[p], counts[p], self.rays, depth, rows_per_cell, stride,
+                     self.rot[p], self.shift[p], self.k[p], self.lens[p], self.distorted[p],
+                     self.direction[p], self.pitch[p], interval_tolerance, ratio,
+                     rescued)  # fmt: skip
+            run_rows(_apply_rows, rows, bands[p], counts[p], ratio, changed)
+        touched = np.flatnonzero((changed + rescued) > 0) // rows_per_cell
+        return int(changed.sum()), int(rescued.sum()), np.unique(touched)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -140,13 +155,23 @@ def _ray(rays, r, x):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _depth_on_ray(rot, shift, kmat, lens, rx, ry, target, z):
+def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     """Depth along the ray ``(rx, ry, 1)`` whose point the projector lights at column
-    ``target`` (Newton from ``z``); NaN when it does not converge."""
+    ``target`` (near ``z``); NaN when there is none near."""
     # the projector-frame point moves along (ax, ay, az) per metre of depth
     ax = rot[0, 0] * rx + rot[0, 1] * ry + rot[0, 2]
     ay = rot[1, 0] * rx + rot[1, 1] * ry + rot[1, 2]
     az = rot[2, 0] * rx + rot[2, 1] * ry + rot[2, 2]
+    # a pinhole projector's column is a ratio of linear functions of the depth: solved
+    # in closed form, which is the answer without lens distortion and a close start with
+    k = target - kmat[0, 2]
+    den = k * az - kmat[0, 0] * ax - kmat[0, 1] * ay
+    if den != 0.0:
+        zc = (kmat[0, 0] * shift[0] + kmat[0, 1] * shift[1] - k * shift[2]) / den
+        if 0.5 * z < zc < 2.0 * z:
+            z = zc
+            if not distorted:
+                return z
     for _ in range(NEWTON_STEPS):
         qx = ax * z + shift[0]
         qy = ay * z + shift[1]
@@ -174,39 +199,18 @@ def _depth_on_ray(rot, shift, kmat, lens, rx, ry, target, z):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, rx, ry):
-    """Projector column of the point where the ray ``(rx, ry, 1)`` passes the line
-    ``O + l t`` (its closest point on the ray)."""
-    # least squares O + l t = m r: normal equations of (l, m)
-    tt = tx * tx + ty * ty + tz * tz
-    tr = tx * rx + ty * ry + tz
-    rr = rx * rx + ry * ry + 1.0
-    to = tx * ox + ty * oy + tz * oz
-    ro = rx * ox + ry * oy + oz
-    det = tt * rr - tr * tr
-    if det == 0.0:
-        return np.nan
-    m = (tt * ro - tr * to) / det
-    return _column(rot, shift, kmat, lens, m * rx, m * ry, m)
-
-
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, pitch):
+def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, distorted, sgn,
+                  pitch):  # fmt: skip
     """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
-    ``c2``, ``n1`` and ``n2`` lines away (signed, along the row); NaN when it fails."""
+    ``c2``, ``n1`` and ``n2`` lines away (signed, along the row); NaN when it fails.
+    ``sgn``: +1 where the projector's columns grow along the camera row, else -1."""
     x0, y0 = _ray(rays, r, c0)
     ox, oy, oz = x0 * z0, y0 * z0, z0
     u0 = _column(rot, shift, kmat, lens, ox, oy, oz)
-    # which way the columns run along the row, at the band's depth
-    xa, ya = _ray(rays, r, c0 + HALF_STEP_PX)
-    xb, yb = _ray(rays, r, c0 - HALF_STEP_PX)
-    ua = _column(rot, shift, kmat, lens, xa * z0, ya * z0, z0)
-    ub = _column(rot, shift, kmat, lens, xb * z0, yb * z0, z0)
-    sgn = 1.0 if ua >= ub else -1.0
     x1, y1 = _ray(rays, r, c1)
     x2, y2 = _ray(rays, r, c2)
-    z1 = _depth_on_ray(rot, shift, kmat, lens, x1, y1, u0 + n1 * sgn * pitch, z0)
-    z2 = _depth_on_ray(rot, shift, kmat, lens, x2, y2, u0 + n2 * sgn * pitch, z0)
+    z1 = _depth_on_ray(rot, shift, kmat, lens, distorted, x1, y1, u0 + n1 * sgn * pitch, z0)
+    z2 = _depth_on_ray(rot, shift, kmat, lens, distorted, x2, y2, u0 + n2 * sgn * pitch, z0)
     if not (z1 > 0.0 and z2 > 0.0):
         return np.nan
     ax, ay, az = x1 * z1 - ox, y1 * z1 - oy, z1 - oz
@@ -217,9 +221,24 @@ def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, pitch
     tx = a2 * cx - c2_ * ax
     ty = a2 * cy - c2_ * ay
     tz = a2 * cz - c2_ * az
-    ua = _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, xa, ya)
-    ub = _column_on_line(rot, shift, kmat, lens, ox, oy, oz, tx, ty, tz, xb, yb)
-    du = abs(ua - ub) / (2.0 * HALF_STEP_PX)
+    # the camera column moves along the tangent as x/z does (the three rays, and so the
+    # tangent, lie in the plane of the row's rays)
+    dxn_dl = (tx * oz - ox * tz) / (oz * oz)
+    j = min(max(int(math.floor(c0)), 0), rays.shape[1] - 2)
+    dxn_dx = rays[r, j + 1, 0] - rays[r, j, 0]
+    if dxn_dl == 0.0:
+        return np.nan
+    # the projector column along the tangent: the lens model's derivative
+    qx = rot[0, 0] * ox + rot[0, 1] * oy + rot[0, 2] * oz + shift[0]
+    qy = rot[1, 0] * ox + rot[1, 1] * oy + rot[1, 2] * oz + shift[1]
+    qz = rot[2, 0] * ox + rot[2, 1] * oy + rot[2, 2] * oz + shift[2]
+    dqx = rot[0, 0] * tx + rot[0, 1] * ty + rot[0, 2] * tz
+    dqy = rot[1, 0] * tx + rot[1, 1] * ty + rot[1, 2] * tz
+    dqz = rot[2, 0] * tx + rot[2, 1] * ty + rot[2, 2] * tz
+    _, _, dxd, dyd = lens_distort_derivative(lens, qx / qz, qy / qz,
+                                             (dqx * qz - qx * dqz) / (qz * qz),
+                                             (dqy * qz - qy * dqz) / (qz * qz))  # fmt: skip
+    du = abs((kmat[0, 0] * dxd + kmat[0, 1] * dyd) * dxn_dx / dxn_dl)
     return pitch / du if du > 0.0 else np.nan
 
 
@@ -241,14 +260,17 @@ def _depth_near(depth, i, c0, c1, off, stride):
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, pitch, itol, changed,
-              rescued, r0, r1):  # fmt: skip
-    """:meth:`ArcIntervals.correct` on measured rows ``r0 .. r1`` of one pattern."""
+def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, distorted, sgn, pitch,
+              itol, ratio, rescued, r0, r1):  # fmt: skip
+    """Measured rows ``r0 .. r1`` of one pattern: each band's arc interval over its secant in
+    ``ratio`` (NaN where none); limb bands get theirs, and their validity, at once."""
     gh = depth.shape[0]
     off = 0.5 * (stride - 1)
     for r in range(r0, r1):
         n = counts[r]
         i = r // k
+        for b in range(n):
+            ratio[r, b] = np.nan
         if i >= gh:
             continue
         for b in range(n):
@@ -270,13 +292,9 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, pit
                 if not z0 > 0.0:
                     continue
                 arc = _arc_interval(rays, r, c0, z0, cp, -1.0, cn, 1.0, rot, shift, kmat, lens,
-                                    pitch)  # fmt: skip
-                if not (plain / MAX_CHANGE < arc < plain * MAX_CHANGE):
-                    continue
-                if abs(arc / plain - 1.0) < MIN_CHANGE:
-                    continue  # a plane: the secant is the tangent, and no reading again
-                bands[r, b, F_INTERVAL] *= arc / plain
-                changed[r] += 1
+                                    distorted, sgn, pitch)  # fmt: skip
+                if plain / MAX_CHANGE < arc < plain * MAX_CHANGE:
+                    ratio[r, b] = arc / plain
             elif code == BAND_LIMB:
                 # the outermost band of a run: its two neighbours on the run's side
                 s = 1 if b + 1 < n and np.isfinite(bands[r, b + 1, F_CENTRE]) else -1
@@ -294,7 +312,7 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, pit
                 if not z0 > 0.0:
                     continue
                 arc = _arc_interval(rays, r, c0, z0, c1, float(s), c2, 2.0 * s, rot, shift,
-                                    kmat, lens, pitch)  # fmt: skip
+                                    kmat, lens, distorted, sgn, pitch)  # fmt: skip
                 if not (d1 / LIMB_CHANGE < arc < d1 * LIMB_CHANGE):
                     continue
                 # the support must leave a gap (as the detector's test, whose interval
@@ -304,5 +322,40 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, pit
                     continue
                 bands[r, b, F_INTERVAL] = arc
                 bands[r, b, F_VALID] = BAND_VALID
-                changed[r] += 1
                 rescued[r] += 1
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _agrees(ratio, counts, bands, r, c, reach, dev):
+    """Whether a band of row ``r`` within ``reach`` of column ``c`` changes its interval the
+    same way as ``dev`` (by at least half of :data:`MIN_CHANGE`).  Only centres are read
+    there: another thread may be scaling that row's intervals."""
+    if r < 0 or r >= counts.shape[0]:
+        return False
+    for q in range(counts[r]):
+        d = ratio[r, q] - 1.0
+        if abs(bands[r, q, F_CENTRE] - c) < reach and d * dev > 0.0 and abs(d) >= 0.5 * MIN_CHANGE:
+            return True
+    return False
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _apply_rows(bands, counts, ratio, changed, r0, r1):
+    """Measured rows ``r0 .. r1``: scale the intervals whose arc changes them by at least
+    :data:`MIN_CHANGE` where a band beside, above or below changes the same way."""
+    for r in range(r0, r1):
+        for b in range(counts[r]):
+            dev = ratio[r, b] - 1.0
+            if not abs(dev) >= MIN_CHANGE:
+                continue
+            c = bands[r, b, F_CENTRE]
+            reach = 0.5 * bands[r, b, F_INTERVAL]
+            near = ((b > 0 and (ratio[r, b - 1] - 1.0) * dev > 0.0
+                     and abs(ratio[r, b - 1] - 1.0) >= 0.5 * MIN_CHANGE)
+                    or (b + 1 < counts[r] and (ratio[r, b + 1] - 1.0) * dev > 0.0
+                        and abs(ratio[r, b + 1] - 1.0) >= 0.5 * MIN_CHANGE)
+                    or _agrees(ratio, counts, bands, r - 1, c, reach, dev)
+                    or _agrees(ratio, counts, bands, r + 1, c, reach, dev))  # fmt: skip
+            if near:
+                bands[r, b, F_INTERVAL] *= ratio[r, b]
+                changed[r] += 1

@@ -1412,40 +1412,59 @@ def _detect_groups(img, weights, row_y, wins, scale, params, edges, bands, count
                 )
 
 
-def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out):
+def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, rows=None):
     """Rasterise ``k`` measured rows per grid cell (:func:`_rasterise_row`) and average them.
 
     ``out[f, i, j]``: field ``fields[f]`` of grid cell (i, j).  Rows of cells run
-    on a thread per core.
+    on a thread per core.  ``rows``: only these rows of cells (int array; the others
+    of ``out`` are left as they are).
     """
-    run_rows(_rasterise_cells, counts.shape[0] // k, bands, counts, k, stride, gw, reach, fields,
-             out)  # fmt: skip
+    if rows is None:
+        run_rows(_rasterise_cells, counts.shape[0] // k, bands, counts, k, stride, gw, reach,
+                 fields, out)  # fmt: skip
+    else:
+        run_rows(_rasterise_listed, len(rows), bands, counts, k, stride, gw, reach, fields, out,
+                 np.asarray(rows, np.int64))  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
 def _rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, c0, c1):
     """:func:`rasterise_cells` on the rows of cells ``c0 .. c1``."""
-    nf = fields.shape[0]
+    tbuf = np.empty(gw)
     for i in range(c0, c1):
-        tbuf = np.empty(gw)
-        if k == 1:
-            # one row per cell: rasterised straight into the grid (where the first
-            # field is NaN, so are all: the rows below write all fields together)
-            _rasterise_row(bands, counts, i, stride, gw, reach, fields, out, i, tbuf)
-            continue
-        buf = np.empty((nf, 1, gw))
-        acc = np.zeros((nf, gw))
-        n = np.zeros(gw, np.int64)
-        for q in range(k):
-            _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, 0, tbuf)
-            for j in range(gw):
-                if not np.isnan(buf[0, 0, j]):
-                    n[j] += 1
-                    for f in range(nf):
-                        acc[f, j] += buf[f, 0, j]
+        _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbuf)
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _rasterise_listed(bands, counts, k, stride, gw, reach, fields, out, rows, c0, c1):
+    """:func:`rasterise_cells` on the rows of cells ``rows[c0:c1]``."""
+    tbuf = np.empty(gw)
+    for q in range(c0, c1):
+        _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, rows[q], tbuf)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbuf):
+    """Row of cells ``i`` of :func:`rasterise_cells` (``tbuf``: scratch of ``gw``)."""
+    nf = fields.shape[0]
+    if k == 1:
+        # one row per cell: rasterised straight into the grid (where the first
+        # field is NaN, so are all: the rows below write all fields together)
+        _rasterise_row(bands, counts, i, stride, gw, reach, fields, out, i, tbuf)
+        return
+    buf = np.empty((nf, 1, gw))
+    acc = np.zeros((nf, gw))
+    n = np.zeros(gw, np.int64)
+    for q in range(k):
+        _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, 0, tbuf)
         for j in range(gw):
-            for f in range(nf):
-                out[f, i, j] = acc[f, j] / n[j] if n[j] else np.nan
+            if not np.isnan(buf[0, 0, j]):
+                n[j] += 1
+                for f in range(nf):
+                    acc[f, j] += buf[f, 0, j]
+    for j in range(gw):
+        for f in range(nf):
+            out[f, i, j] = acc[f, j] / n[j] if n[j] else np.nan
 
 
 @nb.njit(cache=True, error_model="numpy")

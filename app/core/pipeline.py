@@ -238,7 +238,7 @@ class DepthPipeline:
         self._row_y = (np.arange(gh)[:, None] * s + first + np.arange(k)[None, :]).ravel()
         self._arcs = None
         if cfg.arc_intervals and not rig.single_projector and np.all(self.flow_model.kinds == 0):
-            self._arcs = ArcIntervals(rig, self._row_y)
+            self._arcs = ArcIntervals(rig, self._row_y, middle)
         # ... and the rows averaged around them
         extra = np.arange(-b.vertical_extra, b.vertical_extra + 1)
         self._read_rows = np.unique(np.clip(self._row_y[:, None] + extra, 0, cam.height - 1))
@@ -535,21 +535,23 @@ class DepthPipeline:
         ``grids`` and None when no band changed.
         """
         cfg = self.config
-        changed, rescued = self._arcs.correct(bands, counts, depth, self._rows_per_cell,
-                                              cfg.stride, cfg.bands.interval_tolerance)  # fmt: skip
-        if not changed:
+        changed, rescued, rows = self._arcs.correct(
+            bands, counts, depth, self._rows_per_cell, cfg.stride, cfg.bands.interval_tolerance)
+        if not (changed or rescued):
             return grids, None
         gh, gw = self.grid_shape
-        new = np.empty_like(grids)
+        new = grids.copy()
+        # only the grid rows whose bands changed
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
-                               self._fields, new[p])  # fmt: skip
+                               self._fields, new[p], rows)  # fmt: skip
         added = np.zeros((gh, gw), bool)
         if rescued:
             # fields other than the interval (NaN-aware: a cell that gained a band)
+            old, now = grids[:, :, rows], new[:, :, rows]
             for f in (0, 2, 3):
-                same = (new[:, f] == grids[:, f]) | (np.isnan(new[:, f]) & np.isnan(grids[:, f]))
-                added |= ~same.all(axis=0)
+                same = (now[:, f] == old[:, f]) | (np.isnan(now[:, f]) & np.isnan(old[:, f]))
+                added[rows] |= ~same.all(axis=0)
         return new, added
 
     def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
