@@ -125,10 +125,11 @@ class ArcIntervals:
         # each band's arc over its secant first, then those that agree with a neighbour's
         ratio = np.empty(bands.shape[1:3])
         for p in range(2):
-            run_rows(_arc_rows, rows, bands[p], counts[p], self.rays, depth, rows_per_cell, stride,
-                     self.rot[p], self.shift[p], self.k[p], self.lens[p], self.distorted[p],
-                     self.direction[p], self.pitch[p], interval_tolerance, ratio,
-                     rescued)  # fmt: skip
+            for second in (False, True):
+                run_rows(_arc_rows, rows, bands[p], counts[p], self.rays, depth, rows_per_cell,
+                         stride, self.rot[p], self.shift[p], self.k[p], self.lens[p],
+                         self.distorted[p], self.direction[p], self.pitch[p], interval_tolerance,
+                         ratio, rescued, second)  # fmt: skip
             run_rows(_apply_rows, rows, bands[p], counts[p], ratio, changed)
         touched = np.flatnonzero((changed + rescued) > 0) // rows_per_cell
         return int(changed.sum()), int(rescued.sum()), np.unique(touched)
@@ -261,22 +262,32 @@ def _depth_near(depth, i, c0, c1, off, stride):
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
 def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, distorted, sgn, pitch,
-              itol, ratio, rescued, r0, r1):  # fmt: skip
+              itol, ratio, rescued, second, r0, r1):  # fmt: skip
     """Measured rows ``r0 .. r1`` of one pattern: each band's arc interval over its secant in
-    ``ratio`` (NaN where none); limb bands get theirs, and their validity, at once."""
+    ``ratio`` (NaN where none); limb bands get theirs, and their validity, at once.
+
+    Two passes keep planes cheap: the first (``second`` false) reads every other row (and
+    the limb bands), the second the rows between, where a band of the first above or below
+    changes its interval by at least half of :data:`MIN_CHANGE` (where none does, the
+    others would mostly not be applied either).
+    """
     gh = depth.shape[0]
     off = 0.5 * (stride - 1)
     for r in range(r0, r1):
         n = counts[r]
         i = r // k
-        for b in range(n):
-            ratio[r, b] = np.nan
+        if not second:
+            for b in range(n):
+                ratio[r, b] = np.nan
         if i >= gh:
             continue
         for b in range(n):
             code = bands[r, b, F_VALID]
             c0 = bands[r, b, F_CENTRE]
-            if code == BAND_VALID and 0 < b < n - 1:
+            seed = r % 2 == 0
+            if code == BAND_VALID and 0 < b < n - 1 and seed != second:
+                if second and not _curved_near(ratio, counts, bands, r, b):
+                    continue
                 cp = bands[r, b - 1, F_CENTRE]
                 cn = bands[r, b + 1, F_CENTRE]
                 d1 = c0 - cp
@@ -295,7 +306,7 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, dis
                                     distorted, sgn, pitch)  # fmt: skip
                 if plain / MAX_CHANGE < arc < plain * MAX_CHANGE:
                     ratio[r, b] = arc / plain
-            elif code == BAND_LIMB:
+            elif code == BAND_LIMB and not second:
                 # the outermost band of a run: its two neighbours on the run's side
                 s = 1 if b + 1 < n and np.isfinite(bands[r, b + 1, F_CENTRE]) else -1
                 if not (0 <= b + 2 * s < n):
@@ -323,6 +334,23 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, dis
                 bands[r, b, F_INTERVAL] = arc
                 bands[r, b, F_VALID] = BAND_VALID
                 rescued[r] += 1
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _curved_near(ratio, counts, bands, r, b):
+    """Whether a band of the rows above or below (read in the first pass) near band ``b``
+    of row ``r`` changes its interval by at least half of :data:`MIN_CHANGE`.  Only
+    first-pass rows are read: the second pass writes the others meanwhile."""
+    c = bands[r, b, F_CENTRE]
+    reach = bands[r, b, F_INTERVAL]
+    for o in (r - 1, r + 1):
+        if o < 0 or o >= counts.shape[0] or o % 2 != 0:
+            continue
+        for q in range(counts[o]):
+            near = abs(bands[o, q, F_CENTRE] - c) < reach
+            if near and abs(ratio[o, q] - 1.0) >= 0.5 * MIN_CHANGE:
+                return True
+    return False
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
