@@ -95,6 +95,11 @@ def _bands(rig, y, surface, lo, hi, limb_ends=False, rows=3):
     return bands, counts, truths, depth, ys.astype(np.int64)
 
 
+def _none(bands):
+    """No nominal centres (no snapping knows the lines)."""
+    return np.full(bands.shape[:3], np.nan)
+
+
 BALL = ("sphere", (0.03, 0.01, 0.75), 0.15)
 
 
@@ -103,7 +108,7 @@ def test_arc_intervals_are_the_tangent_on_a_sphere_where_the_mean_spacing_is_a_s
     bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0)
     before = bands[:, :, :, F_INTERVAL].copy()
     arcs = ArcIntervals(rig, ys)
-    changed, rescued, _ = arcs.correct(bands, counts, depth, 1, STRIDE, ITOL)
+    changed, rescued, _ = arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)
     assert rescued == 0 and changed >= 10
     for p in range(2):
         n = counts[p, M]
@@ -125,7 +130,7 @@ def test_arc_intervals_hold_with_a_depth_two_per_cent_off_and_on_a_tilted_plane(
     y = 600.0
     bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0)
     arcs = ArcIntervals(rig, ys)
-    arcs.correct(bands, counts, depth * 1.02, 1, STRIDE, ITOL)
+    arcs.correct(bands, counts, _none(bands), depth * 1.02, 1, STRIDE, ITOL)
     for p in range(2):
         n = counts[p, M]
         err = bands[p, M, 1:n - 1, F_INTERVAL] / truths[p][1:-1] - 1
@@ -135,7 +140,7 @@ def test_arc_intervals_hold_with_a_depth_two_per_cent_off_and_on_a_tilted_plane(
     # a plane's secant is within MIN_CHANGE of its tangent: no band is read again
     plane = ("plane", (0.0, 0.0, 0.9), (0.35, 0.1, -1.0))
     bands, counts, truths, depth, ys = _bands(rig, y, plane, 100.0, 1500.0)
-    assert arcs.correct(bands, counts, depth, 1, STRIDE, ITOL)[:2] == (0, 0)
+    assert arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)[:2] == (0, 0)
     for p in range(2):
         n = counts[p, M]
         err = bands[p, M, 1:n - 1, F_INTERVAL] / truths[p][1:-1] - 1
@@ -151,7 +156,7 @@ def test_a_limb_band_becomes_valid_with_the_arc_through_its_next_two_lines(rig):
             j = int(round((bands[p, M, end, F_CENTRE] - 1.5) / STRIDE))
             depth[0, j - 1: j + 2] = np.nan
     arcs = ArcIntervals(rig, ys)
-    changed, rescued, _ = arcs.correct(bands, counts, depth, 1, STRIDE, ITOL)
+    changed, rescued, _ = arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)
     # two of the four are where the lines spread out towards the limb (the side facing
     # its projector), by more than LIMB_CHANGE from one line to the next: limb bands still
     assert rescued >= 2 * len(ys)  # one more in a row whose limb line falls just so
@@ -174,11 +179,46 @@ def test_no_arc_without_a_depth_or_across_a_step_of_the_spacing(rig):
     bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0)
     before = bands.copy()
     arcs = ArcIntervals(rig, ys)
-    assert arcs.correct(bands, counts, np.full_like(depth, np.nan), 1, STRIDE, ITOL)[:2] == (0, 0)
+    no_depth = np.full_like(depth, np.nan)
+    assert arcs.correct(bands, counts, _none(bands), no_depth, 1, STRIDE, ITOL)[:2] == (0, 0)
     np.testing.assert_array_equal(bands, before)
     # a band whose two spacings differ beyond the tolerance (a depth edge) keeps its interval
     p, k = 1, 3
     bands[p, M, k + 1, F_CENTRE] += 0.4 * (bands[p, M, k + 1, F_CENTRE] - bands[p, M, k, F_CENTRE])
     kept = bands[p, M, k, F_INTERVAL]
-    arcs.correct(bands, counts, depth, 1, STRIDE, ITOL)
+    arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)
     assert bands[p, M, k, F_INTERVAL] == kept
+
+
+def test_snapped_neighbours_take_their_nominal_centres(rig):
+    """Lines on whole projector columns move each centre by up to half a column: the arc
+    through them bends with it.  Where snapping knows the run's lines, the arc goes
+    through the centres the lines would have at their nominal columns."""
+    y = 620.0
+    bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0)
+    nominal = np.full(bands.shape[:3], np.nan)
+    rng = np.random.default_rng(3)
+    for p in range(2):
+        for q in range(len(ys)):
+            n = counts[p, q]
+            nominal[p, q, :n] = bands[p, q, :n, F_CENTRE]
+            # a whole-column step: up to 0.3 camera px, the same line in every row
+            if q == 0:
+                jitter = rng.uniform(-0.3, 0.3, n)
+            bands[p, q, :n, F_CENTRE] += jitter
+            c = bands[p, q, :n, F_CENTRE]
+            # the detector's intervals, with snapping's correction to the nominal spacing
+            bands[p, q, 1:n - 1, F_INTERVAL] = 0.5 * (nominal[p, q, 2:n] - nominal[p, q, :n - 2])
+            assert np.abs(np.diff(c) / np.diff(nominal[p, q, :n]) - 1).max() > 0.005
+    arcs = ArcIntervals(rig, ys)
+    blind = bands.copy()
+    arcs.correct(blind, counts, _none(bands), depth, 1, STRIDE, ITOL)
+    arcs.correct(bands, counts, nominal, depth, 1, STRIDE, ITOL)
+    for p in range(2):
+        n = counts[p, M]
+        err = bands[p, M, 1:n - 1, F_INTERVAL] / truths[p][1:-1] - 1
+        off = blind[p, M, 1:n - 1, F_INTERVAL] / truths[p][1:-1] - 1
+        d = np.diff(nominal[p, M, :n])
+        smooth = np.abs(d[1:] - d[:-1]) <= ITOL * 0.5 * (d[1:] + d[:-1])
+        assert np.abs(err[smooth]).max() < MIN_CHANGE + 5e-4, (p, err)
+        assert np.abs(off[smooth]).max() > 2 * np.abs(err[smooth]).max()

@@ -81,6 +81,8 @@ class ArcIntervals:
                        axis=-1)  # fmt: skip
         #: normalised camera coordinates (x/z, y/z) of every column of the measured rows
         self.rays = np.ascontiguousarray(undistort_pixels(cam.K, cam.dist, pix))
+        self.cam_k = np.asarray(cam.K, np.float64)
+        self.cam_lens = lens_coefficients(cam.dist)
         self.rot = np.stack([np.asarray(proj.R, np.float64) for proj, _ in rig.patterns])
         self.shift = np.stack([np.asarray(proj.t, np.float64) for proj, _ in rig.patterns])
         self.k = np.stack([np.asarray(proj.K, np.float64) for proj, _ in rig.patterns])
@@ -93,8 +95,9 @@ class ArcIntervals:
         self.direction = np.array([float(column_direction(cam, proj, depth))
                                    for proj, _ in rig.patterns])  # fmt: skip
 
-    def correct(self, bands: np.ndarray, counts: np.ndarray, depth: np.ndarray, rows_per_cell: int,
-                stride: int, interval_tolerance: float) -> tuple[int, int, np.ndarray]:  # fmt: skip
+    def correct(self, bands: np.ndarray, counts: np.ndarray, nominal: np.ndarray, depth: np.ndarray,
+                rows_per_cell: int, stride: int,
+                interval_tolerance: float) -> tuple[int, int, np.ndarray]:  # fmt: skip
         """Scale each eligible band's ``F_INTERVAL`` by the arc's interval over the secant's,
         and give limb bands (``BAND_LIMB``) the arc's interval through their run's next two
         lines, valid where it leaves their support a gap.
@@ -104,6 +107,10 @@ class ArcIntervals:
         bands, counts : numpy.ndarray
             Both patterns' detector output ``(2, rows, bands, fields)`` and counts
             ``(2, rows)`` (changed in place).
+        nominal : numpy.ndarray
+            ``(2, rows, bands)``: each band's centre had its lines been at their
+            nominal columns, where snapping knows them (:func:`.snapping.desnap_intervals`),
+            else NaN.
         depth : numpy.ndarray
             ``(h, w)`` depth (m) on the analysis grid; NaN where none.
         rows_per_cell, stride : int
@@ -126,10 +133,10 @@ class ArcIntervals:
         ratio = np.empty(bands.shape[1:3])
         for p in range(2):
             for second in (False, True):
-                run_rows(_arc_rows, rows, bands[p], counts[p], self.rays, depth, rows_per_cell,
-                         stride, self.rot[p], self.shift[p], self.k[p], self.lens[p],
-                         self.distorted[p], self.direction[p], self.pitch[p], interval_tolerance,
-                         ratio, rescued, second)  # fmt: skip
+                run_rows(_arc_rows, rows, bands[p], counts[p], nominal[p], self.rays, self.cam_k,
+                         self.cam_lens, depth, rows_per_cell, stride, self.rot[p], self.shift[p],
+                         self.k[p], self.lens[p], self.distorted[p], self.direction[p],
+                         self.pitch[p], interval_tolerance, ratio, rescued, second)  # fmt: skip
             run_rows(_apply_rows, rows, bands[p], counts[p], ratio, changed)
         touched = np.flatnonzero((changed + rescued) > 0) // rows_per_cell
         return int(changed.sum()), int(rescued.sum()), np.unique(touched)
@@ -200,8 +207,8 @@ def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, distorted, sgn,
-                  pitch):  # fmt: skip
+def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens,
+                  distorted, sgn, pitch):  # fmt: skip
     """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
     ``c2``, ``n1`` and ``n2`` lines away (signed, along the row); NaN when it fails.
     ``sgn``: +1 where the projector's columns grow along the camera row, else -1."""
@@ -222,12 +229,12 @@ def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, disto
     tx = a2 * cx - c2_ * ax
     ty = a2 * cy - c2_ * ay
     tz = a2 * cz - c2_ * az
-    # the camera column moves along the tangent as x/z does (the three rays, and so the
-    # tangent, lie in the plane of the row's rays)
-    dxn_dl = (tx * oz - ox * tz) / (oz * oz)
-    j = min(max(int(math.floor(c0)), 0), rays.shape[1] - 2)
-    dxn_dx = rays[r, j + 1, 0] - rays[r, j, 0]
-    if dxn_dl == 0.0:
+    # how fast the camera column moves along the tangent (through the camera's lens: the
+    # three points lie on the curve its row sees, which the circle follows)
+    _, _, dxd, dyd = lens_distort_derivative(cam_lens, x0, y0, (tx * oz - ox * tz) / (oz * oz),
+                                             (ty * oz - oy * tz) / (oz * oz))  # fmt: skip
+    dpx_dl = cam_k[0, 0] * dxd + cam_k[0, 1] * dyd
+    if dpx_dl == 0.0:
         return np.nan
     # the projector column along the tangent: the lens model's derivative
     qx = rot[0, 0] * ox + rot[0, 1] * oy + rot[0, 2] * oz + shift[0]
@@ -239,7 +246,7 @@ def _arc_interval(rays, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens, disto
     _, _, dxd, dyd = lens_distort_derivative(lens, qx / qz, qy / qz,
                                              (dqx * qz - qx * dqz) / (qz * qz),
                                              (dqy * qz - qy * dqz) / (qz * qz))  # fmt: skip
-    du = abs((kmat[0, 0] * dxd + kmat[0, 1] * dyd) * dxn_dx / dxn_dl)
+    du = abs((kmat[0, 0] * dxd + kmat[0, 1] * dyd) / dpx_dl)
     return pitch / du if du > 0.0 else np.nan
 
 
@@ -261,8 +268,8 @@ def _depth_near(depth, i, c0, c1, off, stride):
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, distorted, sgn, pitch,
-              itol, ratio, rescued, second, r0, r1):  # fmt: skip
+def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, rot, shift, kmat,
+              lens, distorted, sgn, pitch, itol, ratio, rescued, second, r0, r1):  # fmt: skip
     """Measured rows ``r0 .. r1`` of one pattern: each band's arc interval over its secant in
     ``ratio`` (NaN where none); limb bands get theirs, and their validity, at once.
 
@@ -302,10 +309,17 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, dis
                 z0 = _depth_near(depth, i, c0, c0, off, stride)
                 if not z0 > 0.0:
                     continue
-                arc = _arc_interval(rays, r, c0, z0, cp, -1.0, cn, 1.0, rot, shift, kmat, lens,
-                                    distorted, sgn, pitch)  # fmt: skip
-                if plain / MAX_CHANGE < arc < plain * MAX_CHANGE:
-                    ratio[r, b] = arc / plain
+                # where snapping knows the run's lines, the neighbours where they would be
+                # at their nominal columns: the whole-column steps would bend the arc
+                d1n = nominal[r, b] - nominal[r, b - 1]
+                d2n = nominal[r, b + 1] - nominal[r, b]
+                if d1n > 0.0 and d2n > 0.0:
+                    d1, d2 = d1n, d2n
+                arc = _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c0 - d1, -1.0, c0 + d2, 1.0,
+                                    rot, shift, kmat, lens, distorted, sgn, pitch)  # fmt: skip
+                secant = 0.5 * (d1 + d2)
+                if secant / MAX_CHANGE < arc < secant * MAX_CHANGE:
+                    ratio[r, b] = arc / secant
             elif code == BAND_LIMB and not second:
                 # the outermost band of a run: its two neighbours on the run's side
                 s = 1 if b + 1 < n and np.isfinite(bands[r, b + 1, F_CENTRE]) else -1
@@ -322,8 +336,8 @@ def _arc_rows(bands, counts, rays, depth, k, stride, rot, shift, kmat, lens, dis
                 z0 = _depth_near(depth, i, c0, c1, off, stride)
                 if not z0 > 0.0:
                     continue
-                arc = _arc_interval(rays, r, c0, z0, c1, float(s), c2, 2.0 * s, rot, shift,
-                                    kmat, lens, distorted, sgn, pitch)  # fmt: skip
+                arc = _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, float(s), c2, 2.0 * s,
+                                    rot, shift, kmat, lens, distorted, sgn, pitch)  # fmt: skip
                 if not (d1 / LIMB_CHANGE < arc < d1 * LIMB_CHANGE):
                     continue
                 # the support must leave a gap (as the detector's test, whose interval

@@ -247,6 +247,8 @@ class DepthPipeline:
             np.empty((2, len(self._row_y), MAX_BANDS_PER_ROW, bd.N_FIELDS)),
             np.empty((2, len(self._row_y)), np.int64),
         )
+        #: per band, its centre had its lines been at their nominal columns (snapping)
+        self._nominal = np.full(self._buffers[1].shape + (MAX_BANDS_PER_ROW,), np.nan)
         self._full_size = (cam.width, cam.height)
         self._full_scale = 255.0
         #: the camera's response (1: linear), and the table that undoes it for the
@@ -536,7 +538,8 @@ class DepthPipeline:
         """
         cfg = self.config
         changed, rescued, rows = self._arcs.correct(
-            bands, counts, depth, self._rows_per_cell, cfg.stride, cfg.bands.interval_tolerance)
+            bands, counts, self._nominal, depth, self._rows_per_cell, cfg.stride,
+            cfg.bands.interval_tolerance)
         if not (changed or rescued):
             return grids, None
         gh, gw = self.grid_shape
@@ -650,8 +653,11 @@ class DepthPipeline:
         timings["overlap"] = (t3 - t2) * 1e3
         for p in range(2):
             bd.band_slants(bands[p], counts[p], self._row_y)
+        # the pipeline's own scratch holds the frame's bands: so does its nominal centres'
+        nominal = self._nominal if buffers is None else np.empty(counts.shape + bands.shape[2:3])
+        nominal[:] = np.nan
         # the two patterns on two threads (the kernel releases the GIL)
-        run_tasks(*(functools.partial(desnap_intervals, bands[p], counts[p], snap)
+        run_tasks(*(functools.partial(desnap_intervals, bands[p], counts[p], snap, nominal[p])
                     for p, snap in enumerate(self._snapping) if snap is not None))  # fmt: skip
         grids = np.empty((2, len(self._fields), gh, gw))
         for p in range(2):

@@ -232,7 +232,7 @@ def _runs(bands, count, starts, ends):
     return nr
 
 
-def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
+def desnap_intervals(bands, counts, snapping: LineSnapping, nominal=None) -> int:
     """Take the column snapping out of every valid band's ``F_INTERVAL`` (in place).
 
     Parameters
@@ -241,6 +241,10 @@ def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
         One pattern's detector output (rows, bands, fields) and band counts.
     snapping : LineSnapping
         The pattern's tables (:meth:`LineSnapping.of`).
+    nominal : numpy.ndarray, optional
+        ``(rows, bands)`` output: where a run was corrected, each band's centre had the
+        lines been at their nominal columns (from the run's first band on; only the
+        differences along a run mean anything), else NaN.
 
     Returns
     -------
@@ -250,12 +254,14 @@ def desnap_intervals(bands, counts, snapping: LineSnapping) -> int:
     if bands.shape[1] > snapping.log_d.shape[1] + 1:
         raise ValueError(f"desnap_intervals: {bands.shape[1]} bands per row, tables for "
                          f"{snapping.log_d.shape[1] + 1}")  # fmt: skip
+    if nominal is None:
+        nominal = np.empty(bands.shape[:2])
     return _desnap(bands, counts, snapping.log_d, snapping.sums, snapping.factor,
-                   snapping.direction)  # fmt: skip
+                   snapping.direction, nominal)  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
-def _desnap(bands, counts, log_d, sums, factor, direction):
+def _desnap(bands, counts, log_d, sums, factor, direction, nominal):
     """:func:`desnap_intervals` on the tables."""
     rows = counts.shape[0]
     width = bands.shape[1]
@@ -266,6 +272,7 @@ def _desnap(bands, counts, log_d, sums, factor, direction):
     run_of = np.empty((rows, width), np.int64)
     most = 1
     for r in range(rows):
+        nominal[r, :] = np.nan
         nruns[r] = _runs(bands[r], counts[r], starts[r], ends[r])
         most = max(most, nruns[r])
     # rows hold a few runs: the residuals are sized by the most, not by the bands
@@ -334,7 +341,7 @@ def _desnap(bands, counts, log_d, sums, factor, direction):
             if not tot[best] < MIN_GAIN * tot[cands]:
                 continue
             fixed += 1
-            _correct_run(bands[r], s, m, factor[best])
+            _correct_run(bands[r], s, m, factor[best], nominal[r])
     return fixed
 
 
@@ -350,14 +357,17 @@ def _pool(tot, other, shift):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _correct_run(bands, s, m, factor):
-    """Scale the run's intervals by their nominal spacings over the measured ones."""
+def _correct_run(bands, s, m, factor, nominal):
+    """Scale the run's intervals by their nominal spacings over the measured ones, and
+    put the centres the lines would have at their nominal columns in ``nominal``."""
     sp = np.empty(m)
     ns = np.empty(m)
+    nominal[s] = bands[s, F_CENTRE]
     for j in range(m):
         sp[j] = bands[s + j + 1, F_CENTRE] - bands[s + j, F_CENTRE]
         # the spacing had the lines been at their nominal centres
         ns[j] = sp[j] * factor[j]
+        nominal[s + j + 1] = nominal[s + j] + ns[j]
     for j in range(m + 1):
         k = s + j
         # only valid bands measured alone whose interval is the detector's plain one:
