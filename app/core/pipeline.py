@@ -461,16 +461,10 @@ class DepthPipeline:
         # a flow is L / B, and a sweep shorter than the line is read against the line's
         # width, B over the pitch: where the intervals are corrected, the sweeps are read
         # again with them
-        first = grids
         added = fallback = None
         if self._arcs is not None:
             # the bands' intervals from the arcs through their lines, at this depth
-            grids, added = self._arc_intervals(bands, counts, z_raw, grids)
-            if added is not None:
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    fallback = np.nan_to_num(np.log(first[:, 1] / grids[:, 1]), nan=0.0,
-                                             posinf=0.0, neginf=0.0).astype(np.float32)  # fmt: skip
-                added |= (fallback != 0).any(axis=0)
+            added, fallback = self._arc_intervals(bands, counts, z_raw, grids)
         intervals = grids[:, 1]
         fix = np.zeros(intervals.shape, np.float32)
         if self.intervals is not None:
@@ -530,32 +524,38 @@ class DepthPipeline:
         )
 
     def _arc_intervals(self, bands, counts, depth, grids):
-        """:class:`ArcIntervals` on the bands (in place), and the grids measured again.
+        """:class:`ArcIntervals` on the bands, and the rows of ``grids`` they change measured
+        again (both in place).
 
-        Returns ``(grids, added)``: the new grids and, per cell, whether its fields
-        changed besides the interval (a limb band became valid nearby); the old
-        ``grids`` and None when no band changed.
+        Returns ``(added, shift)``: per cell, whether it is to be read again (its interval
+        changed, or its other fields: a limb band became valid nearby), and per pattern
+        ``log(old / new)`` of its interval (0 where it did not change); None and None when
+        no band changed.
         """
         cfg = self.config
         changed, rescued, rows = self._arcs.correct(
             bands, counts, self._nominal, depth, self._rows_per_cell, cfg.stride,
             cfg.bands.interval_tolerance)
         if not (changed or rescued):
-            return grids, None
+            return None, None
         gh, gw = self.grid_shape
-        new = grids.copy()
-        # only the grid rows whose bands changed
+        old = grids[:, :, rows]
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
-                               self._fields, new[p], rows)  # fmt: skip
+                               self._fields, grids[p], rows)  # fmt: skip
+        now = grids[:, :, rows]
+        shift = np.zeros((2, gh, gw), np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift[:, rows] = np.nan_to_num(np.log(old[:, 1] / now[:, 1]), nan=0.0, posinf=0.0,
+                                           neginf=0.0)  # fmt: skip
         added = np.zeros((gh, gw), bool)
+        added[rows] = (shift[:, rows] != 0).any(axis=0)
         if rescued:
             # fields other than the interval (NaN-aware: a cell that gained a band)
-            old, now = grids[:, :, rows], new[:, :, rows]
             for f in (0, 2, 3):
                 same = (now[:, f] == old[:, f]) | (np.isnan(now[:, f]) & np.isnan(old[:, f]))
                 added[rows] |= ~same.all(axis=0)
-        return new, added
+        return added, shift
 
     def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
                               std_grid) -> None:  # fmt: skip
