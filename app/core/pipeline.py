@@ -357,6 +357,11 @@ class DepthPipeline:
             grids[1, 1] = 45.0
             depth = np.full((4, 4), 0.7, np.float32)
             self.intervals.disagreement(grids[:, 1], np.where(depth > 0, depth, np.nan))
+        if self._arcs is not None:
+            # the arcs' rows are rasterised again only where a band changed: compile that
+            rows = np.zeros(1, np.int64)
+            bd.rasterise_cells(np.full((1, 4, bd.N_FIELDS), np.nan), rows, 1, self.config.stride,
+                               4, 0.5, self._fields, np.empty((len(self._fields), 1, 4)), rows)
         return time.perf_counter() - t0
 
     def warm_up_optional(self) -> None:
@@ -377,7 +382,7 @@ class DepthPipeline:
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
                            "_full_size", "_linear_table", "_overlap", "_periodic",
-                           "_rig_leak", "_snapping"})  # fmt: skip
+                           "_rig_leak", "_snapping", "_arcs", "_nominal"})  # fmt: skip
     _FLOW_CONSTANT = frozenset({"rig", "pairs"})
 
     def state(self) -> dict:
