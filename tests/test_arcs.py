@@ -222,3 +222,18 @@ def test_snapped_neighbours_take_their_nominal_centres(rig):
         smooth = np.abs(d[1:] - d[:-1]) <= ITOL * 0.5 * (d[1:] + d[:-1])
         assert np.abs(err[smooth]).max() < MIN_CHANGE + 5e-4, (p, err)
         assert np.abs(off[smooth]).max() > 2 * np.abs(err[smooth]).max()
+
+
+def test_the_option_turns_the_arcs_off(rig):
+    import argparse
+
+    from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
+    from lightflow.app.options import add_pipeline_options, pipeline_config
+
+    parser = argparse.ArgumentParser()
+    add_pipeline_options(parser)
+    assert pipeline_config(parser.parse_args([])).arc_intervals
+    off = pipeline_config(parser.parse_args(["--arc-intervals", "off"]))
+    assert not off.arc_intervals
+    assert DepthPipeline(rig, PipelineConfig(arc_intervals=False))._arcs is None
+    assert DepthPipeline(rig, PipelineConfig())._arcs is not None
