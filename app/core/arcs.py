@@ -173,7 +173,7 @@ def _ray(rays, r, x):
             rays[r, j, 1] + f * (rays[r, j + 1, 1] - rays[r, j, 1]))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     """Depth along the ray ``(rx, ry, 1)`` whose point the projector lights at column
     ``target`` (near ``z``); NaN when there is none near."""
@@ -217,7 +217,7 @@ def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     return np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens,
                   distorted, sgn, pitch):  # fmt: skip
     """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
