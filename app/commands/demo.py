@@ -267,8 +267,9 @@ def cpu_seconds() -> float:
 class Helper:
     """The helper process: half of the band detector's kernels, the tables, the renderer.
 
-    Last, the kernels of the depth from the line intervals and of overlapping bands
-    (:func:`lightflow.app.core.intervals.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
+    Last, the kernels of the arcs' line intervals, of the depth from the line intervals and
+    of overlapping bands (:func:`lightflow.app.core.arcs.warm_up`,
+    :func:`lightflow.app.core.intervals.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
     which this process would otherwise compile at the end of the pipeline's warm-up.
 
     It compiles the detector's ``sliding_mid`` while this process compiles
@@ -306,7 +307,8 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
-        "from lightflow.app.core import intervals, overlap\n"
+        "from lightflow.app.core import arcs, intervals, overlap\n"
+        "arcs.warm_up()\n"
         "intervals.warm_up()\n"
         "overlap.warm_up()\n"
         "print('overlap', flush=True)\n"

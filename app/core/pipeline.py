@@ -8,17 +8,17 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
 
+from . import arcs, snapping
 from . import bands as bd
 from . import causes as cz
 from . import intervals as iv
 from . import overlap as ov
 from . import response as rsp
-from . import snapping
 from .arcs import ArcIntervals
 from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
 from .errors import ConfigError, FrameError
@@ -338,7 +338,9 @@ class DepthPipeline:
         image = np.full((cam.height, cam.width, 3), 20, np.uint8)
         image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
         image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
-        scratch = DepthPipeline(self.rig, self.config, lut=self.lut)
+        # the arcs' kernels are optional here: a demo's helper process compiles them
+        config = self.config if optional else replace(self.config, arc_intervals=False)
+        scratch = DepthPipeline(self.rig, config, lut=self.lut)
         # process() needs only these of a Frame (the core does not import drivers)
         scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
         # the smoothing's outlier test needs 16 finite log ratios, which stripes do not give
@@ -357,11 +359,6 @@ class DepthPipeline:
             grids[1, 1] = 45.0
             depth = np.full((4, 4), 0.7, np.float32)
             self.intervals.disagreement(grids[:, 1], np.where(depth > 0, depth, np.nan))
-        if self._arcs is not None:
-            # the arcs' rows are rasterised again only where a band changed: compile that
-            rows = np.zeros(1, np.int64)
-            bd.rasterise_cells(np.full((1, 4, bd.N_FIELDS), np.nan), rows, 1, self.config.stride,
-                               4, 0.5, self._fields, np.empty((len(self._fields), 1, 4)), rows)
         return time.perf_counter() - t0
 
     def warm_up_optional(self) -> None:
@@ -369,8 +366,9 @@ class DepthPipeline:
         does not reach: overlapping bands, when they are measured (about 6 s of
         compilation on a first run, the largest part of the pipeline's), the depth
         from the line intervals (about 1.3 s; it runs only where lines move too little),
-        and the whole-column intervals (about 3.7 s; only for patterns whose lines are
-        off their nominal centres).
+        the whole-column intervals (about 3.7 s; only for patterns whose lines are
+        off their nominal centres) and the arcs' intervals (about 2.3 s;
+        :func:`lightflow.app.core.arcs.warm_up`).
         """
         if self._overlap is not None:
             ov.warm_up(self._overlap)
@@ -378,6 +376,8 @@ class DepthPipeline:
             iv.warm_up()
         if any(s is not None for s in self._snapping):
             snapping.warm_up()
+        if self._arcs is not None:
+            arcs.warm_up()
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
