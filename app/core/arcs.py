@@ -304,7 +304,12 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
             c0 = bands[r, b, F_CENTRE]
             seed = r % 2 == 0
             if code == BAND_VALID and 0 < b < n - 1 and seed != second:
-                if second and not _curved_near(ratio, counts, bands, r, b):
+                # the rows between: only near a band of the first pass (the even rows, not
+                # written now) above or below whose interval changes
+                if second and not (
+                        _changes_near(ratio, counts, bands, r - 1, c0, bands[r, b, F_INTERVAL], 0.0)
+                        or _changes_near(ratio, counts, bands, r + 1, c0, bands[r, b, F_INTERVAL],
+                                         0.0)):  # fmt: skip
                     continue
                 cp = bands[r, b - 1, F_CENTRE]
                 cn = bands[r, b + 1, F_CENTRE]
@@ -362,32 +367,17 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _curved_near(ratio, counts, bands, r, b):
-    """Whether a band of the rows above or below (read in the first pass) near band ``b``
-    of row ``r`` changes its interval by at least half of :data:`MIN_CHANGE`.  Only
-    first-pass rows are read: the second pass writes the others meanwhile."""
-    c = bands[r, b, F_CENTRE]
-    reach = bands[r, b, F_INTERVAL]
-    for o in (r - 1, r + 1):
-        if o < 0 or o >= counts.shape[0] or o % 2 != 0:
-            continue
-        for q in range(counts[o]):
-            near = abs(bands[o, q, F_CENTRE] - c) < reach
-            if near and abs(ratio[o, q] - 1.0) >= 0.5 * MIN_CHANGE:
-                return True
-    return False
-
-
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def _agrees(ratio, counts, bands, r, c, reach, dev):
-    """Whether a band of row ``r`` within ``reach`` of column ``c`` changes its interval the
-    same way as ``dev`` (by at least half of :data:`MIN_CHANGE`).  Only centres are read
-    there: another thread may be scaling that row's intervals."""
+def _changes_near(ratio, counts, bands, r, c, reach, dev):
+    """Whether a band of row ``r`` within ``reach`` of column ``c`` has its interval changed
+    by at least half of :data:`MIN_CHANGE`, the same way as ``dev`` (either way when ``dev``
+    is 0).  Only centres and ratios are read there: another thread may be scaling that
+    row's intervals."""
     if r < 0 or r >= counts.shape[0]:
         return False
     for q in range(counts[r]):
         d = ratio[r, q] - 1.0
-        if abs(bands[r, q, F_CENTRE] - c) < reach and d * dev > 0.0 and abs(d) >= 0.5 * MIN_CHANGE:
+        if abs(bands[r, q, F_CENTRE] - c) < reach and abs(d) >= 0.5 * MIN_CHANGE \
+                and (dev == 0.0 or d * dev > 0.0):  # fmt: skip
             return True
     return False
 
@@ -407,8 +397,8 @@ def _apply_rows(bands, counts, ratio, changed, r0, r1):
                      and abs(ratio[r, b - 1] - 1.0) >= 0.5 * MIN_CHANGE)
                     or (b + 1 < counts[r] and (ratio[r, b + 1] - 1.0) * dev > 0.0
                         and abs(ratio[r, b + 1] - 1.0) >= 0.5 * MIN_CHANGE)
-                    or _agrees(ratio, counts, bands, r - 1, c, reach, dev)
-                    or _agrees(ratio, counts, bands, r + 1, c, reach, dev))  # fmt: skip
+                    or _changes_near(ratio, counts, bands, r - 1, c, reach, dev)
+                    or _changes_near(ratio, counts, bands, r + 1, c, reach, dev))  # fmt: skip
             if near:
                 bands[r, b, F_INTERVAL] *= ratio[r, b]
                 changed[r] += 1

@@ -645,9 +645,10 @@ class FlowModel:
         ``added`` (bool per cell): cells whose bands ``grids`` has anew or changed
         besides their intervals (limb bands that got an interval, :mod:`.arcs`); they are
         read again too, and one without a first reading takes the second whole (its
-        causes and errors).  ``fallback``: the change of the intervals since ``first``
-        where it is more than ``fix`` (``grids`` holds corrected intervals already), for
-        the cells whose second reading fails.
+        causes and errors).  ``fallback``: per pattern, the whole change of the intervals
+        since ``first`` (``log(old / new)``, ``fix`` included) when ``grids`` holds part
+        of it already; a cell whose second reading fails keeps ``first`` scaled by it
+        (by ``fix`` when None).
         """
         # only the intervals change: the other fields are read from ``grids`` (a copy of
         # them all cost 1.1 ms).  A view of a larger buffer, like ``grids[:, 1]``: the
