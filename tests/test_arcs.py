@@ -8,6 +8,7 @@ import pytest
 from lightflow.app.core.arcs import MIN_CHANGE, ArcIntervals
 from lightflow.app.core.bands import (
     BAND_LIMB,
+    BAND_STEEP,
     BAND_VALID,
     F_CENTRE,
     F_INTERVAL,
@@ -188,6 +189,81 @@ def test_no_arc_without_a_depth_or_across_a_step_of_the_spacing(rig):
     kept = bands[p, M, k, F_INTERVAL]
     arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)
     assert bands[p, M, k, F_INTERVAL] == kept
+
+
+def _wall_beside(rig, y, surface, edge_x, wall_z):
+    """Bands of ``surface`` left of camera column ``edge_x`` and of a fronto-parallel wall
+    at ``wall_z`` right of it, the two bands at the edge of each pattern steep; the
+    depth grid of both, and per pattern the index of the last band on ``surface``."""
+    bl, cl, _, dl, ys = _bands(rig, y, surface, 300.0, edge_x)
+    bw, cw, _, dw, _ = _bands(rig, y, ("plane", (0.0, 0.0, wall_z), (0.0, 0.0, -1.0)),
+                              edge_x, 1500.0)  # fmt: skip
+    bands = np.full_like(bl, np.nan)
+    counts = cl + cw
+    for p in range(2):
+        for q in range(bl.shape[1]):
+            n1, n = cl[p, q], counts[p, q]
+            bands[p, q, :n1] = bl[p, q, :n1]
+            bands[p, q, n1:n] = bw[p, q, :cw[p, q]]
+            c = bands[p, q, :n, F_CENTRE]
+            bands[p, q, :n, F_VALID] = BAND_VALID
+            bands[p, q, 1:n - 1, F_INTERVAL] = 0.5 * (c[2:] - c[:-2])
+            bands[p, q, [n1 - 1, n1], F_VALID] = BAND_STEEP
+    return bands, counts, np.where(np.isfinite(dl), dl, dw), ys, cl[:, M] - 1
+
+
+def test_a_steep_band_takes_its_arc_on_one_smooth_surface_not_beside_a_depth_edge(rig):
+    """Bands whose two spacings differ too much for their mean (``BAND_STEEP``) become
+    valid with the arc through their neighbours, at a depth from a cell near them (their
+    own have none): on a sphere within 0.02 % of the tangent.  Beside a depth edge (the
+    ball before a wall, a neighbour on each) the arcs through the next two lines on each
+    side disagree with it, and the band stays without an interval, as it does where
+    either side lacks a second line."""
+    for y in (450.0, 620.0, 800.0):
+        bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0)
+        for p in range(2):
+            for q in range(len(ys)):
+                bands[p, q, 1:counts[p, q] - 1, F_VALID] = BAND_STEEP
+                for c in bands[p, q, 1:counts[p, q] - 1, F_CENTRE]:
+                    depth[q, int(round((c - 1.5) / STRIDE))] = np.nan
+        arcs = ArcIntervals(rig, ys)
+        changed, rescued, _ = arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)
+        assert changed == 0
+        for p in range(2):
+            n = counts[p, M]
+            valid = bands[p, M, 1:n - 1, F_VALID] == BAND_VALID
+            # all but the two beside the run's ends, which lack a second line on one side
+            np.testing.assert_array_equal(valid, np.arange(1, n - 1) % (n - 3) != 1)
+            err = bands[p, M, 1:n - 1, F_INTERVAL][valid] / truths[p][1:-1][valid] - 1
+            assert np.abs(err).max() < 2e-4, (y, p, err)
+    for wall_z in (0.8, 0.9, 1.1):
+        for edge_x in (700.0, 850.0, 1000.0):
+            bands, counts, depth, ys, last = _wall_beside(rig, 620.0, BALL, edge_x, wall_z)
+            arcs = ArcIntervals(rig, ys)
+            assert arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)[1] == 0
+            for p in range(2):
+                assert bands[p, M, last[p], F_VALID] == BAND_STEEP
+                assert bands[p, M, last[p] + 1, F_VALID] == BAND_STEEP
+
+
+def test_a_band_without_a_depth_of_its_own_takes_the_nearest_cells(rig):
+    """The first pass may have no depth in a band's own cell (its flow was screened out):
+    the nearest cell within DEPTH_REACH, in any direction, places the arc."""
+    y = 620.0
+    bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0)
+    # the middle measured row has no depth at all; the rows above and below have
+    depth[M] = np.nan
+    arcs = ArcIntervals(rig, ys)
+    arcs.correct(bands, counts, _none(bands), depth, 1, STRIDE, ITOL)
+    for p in range(2):
+        n = counts[p, M]
+        err = bands[p, M, 1:n - 1, F_INTERVAL] / truths[p][1:-1] - 1
+        err = err[np.abs(err) < 0.005]  # those it corrected (the others keep the secant)
+        assert len(err) >= 0.7 * (n - 2)
+        assert np.abs(err).max() < 2e-3, (p, err)
+    # beyond DEPTH_REACH nothing
+    far = np.full_like(depth, np.nan)
+    assert arcs.correct(bands, counts, _none(bands), far, 1, STRIDE, ITOL)[:2] == (0, 0)
 
 
 def test_snapped_neighbours_take_their_nominal_centres(rig):

@@ -8,8 +8,11 @@ import pytest
 from lightflow.app.core.bands import (
     BAND_CUT,
     BAND_FAINT,
+    BAND_IRREGULAR,
     BAND_LIMB,
+    BAND_STEEP,
     F_CENTRE,
+    F_HEIGHT,
     F_INTERVAL,
     F_LENGTH,
     F_RAMP,
@@ -763,12 +766,47 @@ def test_bands_whose_spacing_changes_smoothly_keep_an_interval_from_the_line_den
     assert worst < worst_mean
     assert worst <= 0.035  # measured 3.0 % (at 0.97 R: the limb itself), else within 2.4 %
     # a step of the spacing (an object before a wall): 40, 40 | 58, 58; a step with the
-    # spacings on either side changing the other way; a step more than twice the change
-    # (as a log ratio) beside it
-    for spacings in ((40.0, 40.0, 58.0, 58.0), (44.0, 40.0, 58.0, 54.0), (34.0, 40.0, 58.0, 70.0)):
+    # spacings on either side changing the other way: irregular.  A step more than twice
+    # the change (as a log ratio) beside it, smaller than STEEP_CHANGE: no interval until
+    # the arcs tell a fast bend from a depth edge (test_arcs)
+    for spacings, code in (((40.0, 40.0, 58.0, 58.0), BAND_IRREGULAR),
+                           ((44.0, 40.0, 58.0, 54.0), BAND_IRREGULAR),
+                           ((34.0, 40.0, 58.0, 70.0), BAND_STEEP)):  # fmt: skip
         centres = FIRST + np.cumsum([0.0, *spacings])
         b = detect_row(band_row(int(centres[-1] + 80), centres, 14.0, w, sigma), 45.0)
-        assert b[2, F_VALID] == -4.0, spacings
+        assert b[2, F_VALID] == code, spacings
+    # beyond STEEP_CHANGE it is a step
+    centres = FIRST + np.cumsum([0.0, 30.0, 36.0, 60.0, 75.0])
+    b = detect_row(band_row(int(centres[-1] + 80), centres, 14.0, w, sigma), 45.0)
+    assert b[2, F_VALID] == BAND_IRREGULAR
+
+
+def test_neighbours_swept_longer_are_lower_but_carry_the_same_light():
+    """A line swept 2.8 times as long is 2.8 times lower (on a ball the sweeps change from
+    line to line): its neighbours' light, height times width, is what must agree.  A band
+    beside one with a quarter of its light stays irregular."""
+    w, sigma = 4.0, 1.0
+    centres = centres_for(45.0, 7)
+    sweeps = [10.0, 28.0, 10.0, 28.0, 10.0, 28.0, 10.0]
+    n = int(centres[-1] + 60)
+    v = np.full(n, BG)
+    for c, L in zip(centres, sweeps, strict=True):
+        # over the exposure a line's light spreads along its sweep
+        v += band_row(n, [c], L, w, sigma, amp=AMP * 10.0 / L) - BG
+    # a window shorter than the interval: each band is found against its own level
+    b = detect_row(v, 25.0)
+    assert len(b) == 7
+    np.testing.assert_array_equal(b[1:6, F_VALID], 1.0)
+    heights = b[1:6, F_HEIGHT]
+    assert heights.max() > 2.5 * heights.min()  # the heights alone would have rejected them
+    np.testing.assert_allclose(b[1:6, F_LENGTH], sweeps[1:6], rtol=0.02)
+    dim = np.full(n, BG)
+    for k, c in enumerate(centres):
+        dim += band_row(n, [c], 14.0, w, sigma, amp=AMP / 4 if k == 3 else AMP) - BG
+    b = detect_row(dim, 25.0)
+    assert len(b) == 7
+    np.testing.assert_array_equal(b[2:5, F_VALID], BAND_IRREGULAR)
+    np.testing.assert_array_equal(b[[1, 5], F_VALID], 1.0)
 
 
 @pytest.mark.xfail(

@@ -37,7 +37,11 @@ The outermost band of a run where the lines bunch towards a limb has no interval
 from the detector (``BAND_LIMB``: a straight extrapolation comes out 4-13 % short
 there).  The arc through it and its run's next two lines gives it one, and the band
 becomes valid: on the evaluation matrix's balls this took coverage from 20-52 % to
-36-61 %.  Two projectors with uniform patterns only.
+36-61 %.  So does a band whose two spacings differ too much for their mean with no step
+beside it (``BAND_STEEP``: the lines bend fast), with the arc through its neighbours if
+that lies between its two spacings, as a tangent on one smooth surface does.  Such bands
+have no depth of their own yet: the nearest cell's within :data:`DEPTH_REACH` serves.
+Two projectors with uniform patterns only.
 """
 
 from __future__ import annotations
@@ -47,7 +51,16 @@ import math
 import numba as nb
 import numpy as np
 
-from .bands import BAND_LIMB, BAND_VALID, F_CENTRE, F_INTERVAL, F_LENGTH, F_RAMP, F_VALID
+from .bands import (
+    BAND_LIMB,
+    BAND_STEEP,
+    BAND_VALID,
+    F_CENTRE,
+    F_INTERVAL,
+    F_LENGTH,
+    F_RAMP,
+    F_VALID,
+)
 from .geometry import lens_coefficients, lens_distort, lens_distort_derivative, undistort_pixels
 from .rig import Rig
 from .snapping import column_direction
@@ -69,6 +82,18 @@ MIN_CHANGE = 0.002
 #: a limb band's two spacings, and its arc interval and the spacing to the next line,
 #: may differ by at most this factor (the lines bunch towards the limb, smoothly)
 LIMB_CHANGE = 1.6
+#: a steep band's arc interval must lie between its two spacings, give or take this factor
+#: (on one smooth surface the tangent at a line lies between the secants on its sides)
+STEEP_SLACK = 1.02
+#: grid cells searched around a band (or a limb band's run) for a first-pass depth, in any
+#: direction: 24 camera px at the default stride, under a line interval.  The arc hardly
+#: depends on the depth (2 % off moves it by under 0.01 %), and a limb or steep band's
+#: own cell has none (nor, often, a valid band's whose secant put its depth out of range)
+DEPTH_REACH = 6
+#: a steep band's arc and those through its line and the next two on either side must
+#: agree within this share: one smooth surface.  Beside a depth edge they differ by far
+#: more (the ball before a wall of tests/test_arcs.py), on a sphere by under 0.01 %
+SIDES_AGREE = 0.01
 
 
 class ArcIntervals:
@@ -111,7 +136,8 @@ class ArcIntervals:
                 interval_tolerance: float) -> tuple[int, int, np.ndarray]:  # fmt: skip
         """Scale each eligible band's ``F_INTERVAL`` by the arc's interval over the secant's,
         and give limb bands (``BAND_LIMB``) the arc's interval through their run's next two
-        lines, valid where it leaves their support a gap.
+        lines and steep bands (``BAND_STEEP``) the arc's through their neighbours, valid
+        where it leaves their support a gap.
 
         Parameters
         ----------
@@ -133,8 +159,8 @@ class ArcIntervals:
         Returns
         -------
         (int, int, numpy.ndarray)
-            Bands whose interval was scaled, limb bands (``BAND_LIMB``) that became
-            valid with their arc's, and the grid rows that hold either.
+            Bands whose interval was scaled, limb and steep bands that became valid
+            with their arc's, and the grid rows that hold either.
         """
         rows = bands.shape[1]
         changed = np.zeros(rows, np.int64)
@@ -262,20 +288,31 @@ def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, 
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _depth_near(depth, i, c0, c1, off, stride):
-    """Depth of the cell of ``c0`` in grid row ``i``, else of the nearest cell towards
-    ``c1`` that has one (a limb band's own cell may have none yet)."""
-    gw = depth.shape[1]
-    j0 = int(math.floor((c0 - off) / stride + 0.5))
-    j1 = int(math.floor((c1 - off) / stride + 0.5))
-    step = 1 if j1 >= j0 else -1
-    j = j0
-    while True:
-        if 0 <= j < gw and depth[i, j] > 0.0:
-            return depth[i, j]
-        if j == j1:
-            return np.nan
-        j += step
+def _depth_around(depth, i, ca, cb, off, stride, reach):
+    """Depth of the cell nearest to grid row ``i``'s columns ``ca .. cb`` (camera px) that
+    has one, within ``reach`` cells in any direction; of equals, the one nearest to
+    ``ca`` (along the row first: a limb band's run).  NaN if none."""
+    gh, gw = depth.shape
+    ja = int(math.floor((ca - off) / stride + 0.5))
+    jb = int(math.floor((cb - off) / stride + 0.5))
+    lo = min(ja, jb)
+    hi = max(ja, jb)
+    best = reach * reach + 1
+    best_a = 0
+    z = np.nan
+    for ii in range(max(0, i - reach), min(gh, i + reach + 1)):
+        di = ii - i
+        for jj in range(max(0, lo - reach), min(gw, hi + reach + 1)):
+            if not depth[ii, jj] > 0.0:
+                continue
+            dj = lo - jj if jj < lo else (jj - hi if jj > hi else 0)
+            d = di * di + dj * dj
+            da = abs(jj - ja)
+            if d < best or (d == best and da < best_a):
+                best = d
+                best_a = da
+                z = depth[ii, jj]
+    return z
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
@@ -303,7 +340,8 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
             code = bands[r, b, F_VALID]
             c0 = bands[r, b, F_CENTRE]
             seed = r % 2 == 0
-            if code == BAND_VALID and 0 < b < n - 1 and seed != second:
+            steep = code == BAND_STEEP and not second
+            if (steep or code == BAND_VALID and seed != second) and 0 < b < n - 1:
                 # the rows between: only near a band of the first pass (the even rows, not
                 # written now) above or below whose interval changes
                 if second and not (
@@ -319,10 +357,13 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                     continue
                 plain = 0.5 * (d1 + d2)
                 # one smooth surface: the detector's plain interval (or snapping's
-                # correction of it), not one from a side of a depth edge or a trend
-                if abs(d1 - d2) > itol * plain or abs(bands[r, b, F_INTERVAL] / plain - 1.0) > 0.1:
+                # correction of it), not one from a side of a depth edge or a trend; or a
+                # steep band's, whose spacings differ too much for their mean (the lines
+                # bend fast): the arc gives it an interval, and validity
+                if not steep and (abs(d1 - d2) > itol * plain
+                                  or abs(bands[r, b, F_INTERVAL] / plain - 1.0) > 0.1):  # fmt: skip
                     continue
-                z0 = _depth_near(depth, i, c0, c0, off, stride)
+                z0 = _depth_around(depth, i, c0, c0, off, stride, DEPTH_REACH)
                 if not z0 > 0.0:
                     continue
                 # where snapping knows the run's lines, the neighbours where they would be
@@ -333,6 +374,12 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                     d1, d2 = d1n, d2n
                 arc = _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c0 - d1, -1.0, c0 + d2, 1.0,
                                     rot, shift, kmat, lens, distorted, sgn, pitch)  # fmt: skip
+                if steep:
+                    between = min(d1, d2) / STEEP_SLACK < arc < max(d1, d2) * STEEP_SLACK
+                    if between and _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0,
+                                                rot, shift, kmat, lens, distorted, sgn, pitch):
+                        _rescue(bands, r, b, arc, rescued)
+                    continue
                 secant = 0.5 * (d1 + d2)
                 if secant / MAX_CHANGE < arc < secant * MAX_CHANGE:
                     ratio[r, b] = arc / secant
@@ -349,21 +396,46 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                 # surface, or another object's lines)
                 if not (d1 > 2.0 and d2 > 2.0 and max(d1, d2) < LIMB_CHANGE * min(d1, d2)):
                     continue
-                z0 = _depth_near(depth, i, c0, c1, off, stride)
+                z0 = _depth_around(depth, i, c0, c1, off, stride, DEPTH_REACH)
                 if not z0 > 0.0:
                     continue
                 arc = _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, float(s), c2, 2.0 * s,
                                     rot, shift, kmat, lens, distorted, sgn, pitch)  # fmt: skip
-                if not (d1 / LIMB_CHANGE < arc < d1 * LIMB_CHANGE):
-                    continue
-                # the support must leave a gap (as the detector's test, whose interval
-                # was the straight extrapolation)
-                support = bands[r, b, F_LENGTH] + 2.0 * bands[r, b, F_RAMP] / 0.6
-                if support > arc:
-                    continue
-                bands[r, b, F_INTERVAL] = arc
-                bands[r, b, F_VALID] = BAND_VALID
-                rescued[r] += 1
+                if d1 / LIMB_CHANGE < arc < d1 * LIMB_CHANGE:
+                    _rescue(bands, r, b, arc, rescued)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0, rot, shift, kmat, lens,
+                 distorted, sgn, pitch):  # fmt: skip
+    """Whether the arcs through band ``b``'s line and its next two on either side both
+    agree with ``arc`` (through a neighbour on each side) within :data:`SIDES_AGREE`: one
+    smooth surface, not a depth edge beside the band."""
+    c0 = bands[r, b, F_CENTRE]
+    for s in (-1, 1):
+        if not (0 <= b + 2 * s < n):
+            return False
+        c1 = bands[r, b + s, F_CENTRE]
+        c2 = bands[r, b + 2 * s, F_CENTRE]
+        if not (abs(c2 - c1) > 2.0):
+            return False
+        side = _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, float(s), c2, 2.0 * s,
+                             rot, shift, kmat, lens, distorted, sgn, pitch)  # fmt: skip
+        if not abs(side / arc - 1.0) < SIDES_AGREE:
+            return False
+    return True
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _rescue(bands, r, b, arc, rescued):
+    """Band ``b`` of measured row ``r`` (limb or steep) becomes valid with the interval
+    ``arc`` where its support leaves a gap (as the detector's test, whose interval was
+    the straight extrapolation or the mean)."""
+    support = bands[r, b, F_LENGTH] + 2.0 * bands[r, b, F_RAMP] / 0.6
+    if support <= arc:
+        bands[r, b, F_INTERVAL] = arc
+        bands[r, b, F_VALID] = BAND_VALID
+        rescued[r] += 1
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

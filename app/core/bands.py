@@ -28,9 +28,12 @@ longer than the interval: the swept lines add up to narrow pulses on a raised fl
 shaped like short bands; where no gap within :data:`FLOOR_GAPS` gaps shows the floor,
 they are not told apart), asymmetric bands (cut by an object boundary or the panel edge),
 bands whose neighbour intervals disagree (boundaries, missing lines; not where the
-spacing changes as a smooth trend, the lines bunching towards a ball's limb), and
-faint bands.  Static lines are rejected later, where the line width in
-camera pixels is known (:mod:`lightflow.app.core.flow`).
+spacing changes as a smooth trend, the lines bunching towards a ball's limb), bands
+whose neighbours carry far more or less light, and faint bands.  Two kinds wait for
+a depth instead (:mod:`lightflow.app.core.arcs`): the outermost band of a run whose
+spacings change fast (``BAND_LIMB``) and a band whose two spacings differ too much
+for their mean with no step beside it (``BAND_STEEP``).  Static lines are rejected
+later, where the line width in camera pixels is known (:mod:`lightflow.app.core.flow`).
 """
 
 from __future__ import annotations
@@ -60,10 +63,20 @@ BAND_PERIODIC = 2.0
 BAND_FAINT = -1.0  # too little contrast, or no clean half-height crossings
 BAND_CUT = -2.0  # one sharp side (an object edge) or running into the image border
 BAND_OVERLAP = -3.0  # no clean gap to a neighbour: bands merge
-BAND_IRREGULAR = -4.0  # dips inside (print, an edge), intervals or heights that disagree
+BAND_IRREGULAR = -4.0  # dips inside (print, an edge), intervals or light that disagree
 #: the outermost band of a run whose spacings change too fast for a straight extrapolation
 #: (a ball's limb): no interval here; :mod:`.arcs` gives it one once a depth is known
 BAND_LIMB = -5.0
+#: a band whose two spacings differ too much for their mean, with no step beside it and
+#: no trend on either side (the lines bend fast: a ball's lower half, seen from above): no
+#: interval here; :mod:`.arcs` gives it the arc's through its neighbours once a depth is
+#: known
+BAND_STEEP = -6.0
+#: a steep band's spacings differ by at most this factor (beyond it, a step)
+STEEP_CHANGE = 1.6
+#: a band's neighbours must carry between 1 / this and this times its light (height times
+#: width at half height: a line swept longer is lower by as much), else it is irregular
+LIGHT_RATIO = 2.5
 #: gaps on each side searched for the floor under the bands (:func:`bands_in_row`), and
 #: how far above it (a share of the band's height) both gaps of a band may lie: swept
 #: lines that overlap raise the gaps by at least the height of the pulses they leave
@@ -1179,8 +1192,11 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
             continue
         if not valid:
             continue
-        hp = out[kp, F_HEIGHT]
-        hn = out[kn, F_HEIGHT]
+        steep = False
+        # the light of each line: the heights alone differ wherever the sweeps do (on a
+        # ball, from line to line)
+        hp = out[kp, F_HEIGHT] * out[kp, F_LENGTH]
+        hn = out[kn, F_HEIGHT] * out[kn, F_LENGTH]
         if abs(d1 - d2) > itol * interval:
             # a depth edge beside the band (a blade before the wall, a ball before a wall):
             # when the spacings on exactly one side agree, the band lies on that side's
@@ -1190,23 +1206,29 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
             if np.isfinite(left) != np.isfinite(right):
                 interval = left if np.isfinite(left) else right
                 out[k, F_INTERVAL] = interval
-                hp = hn = out[kp, F_HEIGHT] if np.isfinite(left) else out[kn, F_HEIGHT]
+                hp = hn = hp if np.isfinite(left) else hn
             else:
                 # neither side's spacings agree: a smooth trend (a ball's limb), not a step
                 trend = np.nan if np.isfinite(left) else _trend_interval(out, ns, kp, k, kn,
                                                                          itol)  # fmt: skip
-                if not np.isfinite(trend):
+                if np.isfinite(trend):
+                    interval = trend
+                    out[k, F_INTERVAL] = interval
+                elif not np.isfinite(left) and max(d1, d2) < STEEP_CHANGE * min(d1, d2):
+                    steep = True  # valid once the arcs give it an interval
+                else:
                     out[k, F_VALID] = BAND_IRREGULAR
                     continue
-                interval = trend
-                out[k, F_INTERVAL] = interval
         support = out[k, F_LENGTH] + ramp
         if support > interval - min_gap:
             out[k, F_VALID] = BAND_OVERLAP
             continue
-        h0 = out[k, F_HEIGHT]
-        if not (0.4 * h0 < hp < 2.5 * h0 and 0.4 * h0 < hn < 2.5 * h0):
+        h0 = out[k, F_HEIGHT] * out[k, F_LENGTH]
+        if not (h0 / LIGHT_RATIO < hp < LIGHT_RATIO * h0
+                and h0 / LIGHT_RATIO < hn < LIGHT_RATIO * h0):  # fmt: skip
             out[k, F_VALID] = BAND_IRREGULAR
+        elif steep:
+            out[k, F_VALID] = BAND_STEEP
     return ns
 
 

@@ -17,6 +17,7 @@ from .bands import (
     BAND_IRREGULAR,
     BAND_LIMB,
     BAND_OVERLAP,
+    BAND_STEEP,
     F_END,
     F_RAMP,
     F_START,
@@ -73,7 +74,7 @@ def _band_code_cause(code):
         return CUT
     if code == BAND_OVERLAP:
         return OVERLAP
-    if code == BAND_IRREGULAR or code == BAND_LIMB:
+    if code == BAND_IRREGULAR or code == BAND_LIMB or code == BAND_STEEP:
         return IRREGULAR
     return FAINT  # segments never measured are faint ones
 

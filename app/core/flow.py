@@ -643,7 +643,7 @@ class FlowModel:
         over the predicted interval.  ``periodic``: as for :meth:`combine`.
 
         ``added`` (bool per cell): cells whose bands ``grids`` has anew or changed
-        besides their intervals (limb bands that got an interval, :mod:`.arcs`); they are
+        besides their intervals (limb or steep bands that got one, :mod:`.arcs`); they are
         read again too, and one without a first reading takes the second whole (its
         causes and errors).  ``fallback``: per pattern, the whole change of the intervals
         since ``first`` (``log(old / new)``, ``fix`` included) when ``grids`` holds part

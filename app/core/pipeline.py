@@ -533,7 +533,7 @@ class DepthPipeline:
         again (both in place).
 
         Returns ``(added, shift)``: per cell, whether it is to be read again (its interval
-        changed, or its other fields: a limb band became valid nearby), and per pattern
+        changed, or its other fields: a limb or steep band became valid nearby), and per pattern
         ``log(old / new)`` of its interval (0 where it did not change); None and None when
         no band changed.
         """
