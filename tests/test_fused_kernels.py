@@ -13,7 +13,7 @@ import pytest
 from lightflow.app.core import causes as cz
 from lightflow.app.core import intervals as iv
 from lightflow.app.core.depth_model import DepthLUT, DepthRange, lookup_depth
-from lightflow.app.core.flow import FlowMaps, _blur_busy, _gauss
+from lightflow.app.core.flow import FlowMaps, _blur_busy, _gauss, _gauss_window
 from lightflow.app.core.intervals import IntervalModel
 from lightflow.app.core.rig import resolve_rig
 
@@ -72,6 +72,23 @@ def test_blur_of_the_busy_rows_is_the_whole_blur(rows):
     busy = np.zeros(120, bool)
     busy[rows] = True
     assert np.array_equal(_blur_busy(stack, 2.0, busy), _gauss(stack, 2.0))
+
+
+@pytest.mark.parametrize("channels", [6, 7])
+@pytest.mark.parametrize("width", [400, 403, 57])
+def test_blur_of_a_window_is_the_whole_blur(channels, width):
+    """Windows of any size and place, up to the map's edges (where OpenCV's last few
+    values of a row are its own)."""
+    rng = np.random.default_rng(width + channels)
+    stack = rng.random((90, width, channels)).astype(np.float32)
+    stack[rng.random((90, width)) < 0.5] = 0.0
+    whole = _gauss(stack, 2.0)
+    for _ in range(60):
+        r0, c0 = rng.integers(0, 89), rng.integers(0, width - 1)
+        r1, c1 = rng.integers(r0 + 1, 91), rng.integers(c0 + 1, width + 1)
+        out = np.full_like(stack, np.nan)
+        _gauss_window(stack, 2.0, out, r0, r1, c0, c1)
+        assert np.array_equal(out[r0:r1, c0:c1], whole[r0:r1, c0:c1]), (r0, r1, c0, c1)
 
 
 def test_screen_is_the_numpy_screen():
