@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass, field, fields, replace
 
 import cv2
+import numba as nb
 import numpy as np
 
 from . import arcs, snapping
@@ -544,22 +545,20 @@ class DepthPipeline:
         if not (changed or rescued):
             return None, None
         gh, gw = self.grid_shape
-        old = grids[:, :, rows]
+        # the rows as they were: their intervals, and with rescued bands the other fields
+        old = np.empty((2, grids.shape[1] if rescued else 2, len(rows), gw))
+        _gather_rows(grids, rows, old)
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
                                self._fields, grids[p], rows)  # fmt: skip
-        now = grids[:, :, rows]
-        shift = np.zeros((2, gh, gw), np.float32)
+        ratio = np.empty((2, len(rows), gw))
+        changed = np.empty((len(rows), gw), np.bool_)
+        _compare_rows(old, grids, rows, ratio, changed)
         with np.errstate(invalid="ignore", divide="ignore"):
-            shift[:, rows] = np.nan_to_num(np.log(old[:, 1] / now[:, 1]), nan=0.0, posinf=0.0,
-                                           neginf=0.0)  # fmt: skip
+            np.log(ratio, out=ratio)  # numpy's log (the kernels' would round otherwise)
+        shift = np.zeros((2, gh, gw), np.float32)
         added = np.zeros((gh, gw), bool)
-        added[rows] = (shift[:, rows] != 0).any(axis=0)
-        if rescued:
-            # fields other than the interval (NaN-aware: a cell that gained a band)
-            for f in (0, 2, 3):
-                same = (now[:, f] == old[:, f]) | (np.isnan(now[:, f]) & np.isnan(old[:, f]))
-                added[rows] |= ~same.all(axis=0)
+        _shift_rows(ratio, rows, changed, shift, added)
         return added, shift
 
     def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
@@ -960,3 +959,53 @@ def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.nda
     valid = np.empty(n, np.bool_)
     m = bd.pack_bands(bands, counts, row_y, rows, starts, ends, valid)
     return BandSet(channel, rows[:m], starts[:m], ends[:m], valid[:m])
+
+
+# The kernels below fuse what were numpy passes over the rows that the arcs changed
+# (:meth:`DepthPipeline._arc_intervals`), with numpy's arithmetic.
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather_rows(grids, rows, out):
+    """``out[p, f, q]``: row ``rows[q]`` of field ``f`` (the first ``out.shape[1]``) of
+    pattern ``p`` of ``grids``."""
+    for p in range(2):
+        for f in range(out.shape[1]):
+            for q in range(rows.size):
+                out[p, f, q] = grids[p, f, rows[q]]
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _compare_rows(old, grids, rows, ratio, changed):
+    """``ratio``: per pattern, the old interval (``old[:, 1]``, rows ``rows`` of ``grids``
+    as they were) over the new; ``changed``: with the four fields in ``old``, whether
+    another field of the cell changed (NaN-aware: a cell that gained a band)."""
+    for q in range(rows.size):
+        i = rows[q]
+        for j in range(ratio.shape[2]):
+            c = False
+            for p in range(2):
+                ratio[p, q, j] = old[p, 1, q, j] / grids[p, 1, i, j]
+                if old.shape[1] > 2:
+                    for f in (0, 2, 3):
+                        a = old[p, f, q, j]
+                        b = grids[p, f, i, j]
+                        if a != b and not (np.isnan(a) and np.isnan(b)):
+                            c = True
+            changed[q, j] = c
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _shift_rows(log_ratio, rows, changed, shift, added):
+    """``shift`` (float32): ``log_ratio`` (per pattern, on rows ``rows``), 0 where it is not
+    finite; ``added``: a shift other than 0, or ``changed``."""
+    for q in range(rows.size):
+        i = rows[q]
+        for j in range(shift.shape[2]):
+            a = changed[q, j]
+            for p in range(2):
+                v = log_ratio[p, q, j]
+                s = np.float32(v) if np.isfinite(v) else np.float32(0.0)
+                shift[p, i, j] = s
+                a = a or s != 0.0
+            added[i, j] = a
