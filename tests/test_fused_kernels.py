@@ -12,7 +12,13 @@ import pytest
 
 from lightflow.app.core import causes as cz
 from lightflow.app.core import intervals as iv
-from lightflow.app.core.depth_model import DepthLUT, DepthRange, lookup_depth
+from lightflow.app.core.depth_model import (
+    DepthLUT,
+    DepthRange,
+    depth_and_slope,
+    lookup_depth,
+    update_depth_and_slope,
+)
 from lightflow.app.core.flow import FlowMaps, _blur_busy, _gauss, _gauss_window
 from lightflow.app.core.intervals import IntervalModel
 from lightflow.app.core.rig import resolve_rig
@@ -62,6 +68,24 @@ def test_lookup_reads_the_catmull_rom_of_each_pixel():
             a, b, c = p2 - p0, 2 * p0 - 5 * p1 + 4 * p2 - p3, 3 * (p1 - p2) + p3 - p0
             expected = np.float32(1.0 / (p1 + 0.5 * f * (a + f * (b + f * c))))
             assert z[i, j] == pytest.approx(expected, rel=1e-6)
+
+
+def test_depth_looked_up_again_where_the_log_ratio_changed_is_the_whole_lookup():
+    rng = np.random.default_rng(4)
+    h, w, m = 30, 40, 22
+    table = rng.uniform(0.4, 3.0, (h, w, m)).astype(np.float32)
+    h0 = rng.uniform(-0.5, 0.0, (h, w)).astype(np.float32)
+    inv_dh = rng.uniform(5.0, 30.0, (h, w)).astype(np.float32)
+    lut = DepthLUT(4, h0, inv_dh, table)
+    before = _spiked(rng, (h, w), lo=-0.6, hi=1.5).astype(np.float32)
+    now = before.copy()
+    changed = rng.random((h, w)) < 0.2
+    now[changed] = _spiked(rng, (h, w), lo=-0.6, hi=1.5).astype(np.float32)[changed]
+    z, slope = depth_and_slope(lut, before)
+    update_depth_and_slope(lut, now, before, z, slope)
+    want = depth_and_slope(lut, now)
+    assert np.array_equal(z, want[0], equal_nan=True)
+    assert np.array_equal(slope, want[1], equal_nan=True)
 
 
 @pytest.mark.parametrize("rows", [[], [3], [40, 41, 42, 90], list(range(10, 60))])

@@ -21,7 +21,14 @@ from . import intervals as iv
 from . import overlap as ov
 from . import response as rsp
 from .arcs import ArcIntervals
-from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
+from .depth_model import (
+    DepthLUT,
+    DepthRange,
+    depth_and_slope,
+    load_or_build_lut,
+    lookup_depth,
+    update_depth_and_slope,
+)
 from .errors import ConfigError, FrameError
 from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
 from .intervals import IntervalModel
@@ -478,8 +485,9 @@ class DepthPipeline:
         if fix.any() or added is not None:
             fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic, added,
                                         None if fallback is None else fallback + fix)  # fmt: skip
+            # the second reading changes the log ratio near the cells read again only
+            update_depth_and_slope(self.lut, fm.log_ratio, raw, z_raw, dz_dh)
             raw, why = fm.log_ratio, fm.why
-            z_raw, dz_dh = depth_and_slope(self.lut, raw)
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
         # the final smoothing averages the random part further (by its kernel area)
