@@ -21,6 +21,12 @@ from lightflow.app.core.depth_model import (
 )
 from lightflow.app.core.flow import FlowMaps, _blur_busy, _gauss, _gauss_window
 from lightflow.app.core.intervals import IntervalModel
+from lightflow.app.core.pipeline import (
+    INTERVAL_FLOOR,
+    INTERVAL_NOISE,
+    _interval_variance,
+    _join_interval_depth,
+)
 from lightflow.app.core.rig import resolve_rig
 
 
@@ -175,3 +181,43 @@ def test_curved_is_the_numpy_test(share):
         for reach in (8.0, 45.0, 2.0, 1e4):
             expected = _numpy_curved(model, intervals, sparse, reach)
             assert np.array_equal(model._curved(intervals, sparse, reach), expected)
+
+
+def test_interval_depth_kernels_are_their_numpy_passes():
+    """DepthPipeline._depth_from_intervals' variance and last step against the numpy
+    passes they replaced."""
+    rng = np.random.default_rng(5)
+    shape = (50, 70)
+    intervals = _spiked(rng, (2, *shape), lo=5.0, hi=80.0)
+    sens = _spiked(rng, shape, lo=-2.0, hi=2.0).astype(np.float32)
+    cells = 4.0 * np.pi * 6.0 * 6.0 * 4
+    var = np.empty(shape, np.float32)
+    _interval_variance(intervals, sens, cells, INTERVAL_NOISE**2, INTERVAL_FLOOR**2, var, 0, 50)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bands = np.maximum(1.0, cells / intervals.mean(axis=0))
+        want = (INTERVAL_NOISE**2 / bands + INTERVAL_FLOOR**2) / (sens * sens)
+    assert np.array_equal(var, want.astype(np.float32), equal_nan=True)
+
+    z = _spiked(rng, shape, lo=0.2, hi=3.0).astype(np.float32)
+    var = _spiked(rng, shape, lo=0.0, hi=0.01).astype(np.float32)
+    depth = _spiked(rng, shape, share=0.4, lo=0.2, hi=3.0).astype(np.float32)
+    std = _spiked(rng, shape, lo=0.001, hi=0.2).astype(np.float32)
+    swept, curved = rng.random(shape) < 0.8, rng.random(shape) < 0.3
+    max_std, near, far = 0.05, 0.3, 2.7
+    got_depth, got_std = depth.copy(), std.copy()
+    _join_interval_depth(z, var, swept, curved, np.float32(max_std), np.float32(near),
+                         np.float32(far), got_depth, got_std, 0, 50)  # fmt: skip
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        s = z * np.sqrt(var)
+        ok = (s <= max_std * z) & (z >= near) & (z <= far)
+        fill = ~np.isfinite(depth) & ok
+        both = np.isfinite(depth) & ok & swept & ~curved
+        w_flow = 1.0 / np.square(std[both])
+        w_int = 1.0 / np.square(s[both])
+        depth[both] = (depth[both] * w_flow + z[both] * w_int) / (w_flow + w_int)
+        std[both] = 1.0 / np.sqrt(w_flow + w_int)
+    depth[fill] = z[fill]
+    std[fill] = s[fill]
+    assert fill.any() and both.any()
+    assert np.array_equal(got_depth, depth, equal_nan=True)
+    assert np.array_equal(got_std, std, equal_nan=True)

@@ -36,7 +36,7 @@ from .profile_model import static_width_excess, tables
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 from .snapping import LineSnapping, column_direction, desnap_intervals
-from .threads import run_tasks
+from .threads import run_rows, run_tasks
 
 MAX_BANDS_PER_ROW = 160
 #: print as long as a photo block is filled (``bands.print_block_px``) only in tiles of
@@ -591,29 +591,22 @@ class DepthPipeline:
         r = int(2.0 * sigma) + 1
         near = cv2.dilate(wanted.view(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
         z, sens = self.intervals.depth(intervals, swept & near.view(bool))
+        if not np.isfinite(z).any():
+            return
+        # independent bands under the kernel: cells times the stride over the interval
+        cells = 4.0 * np.pi * sigma * sigma * self.config.stride
+        var = np.empty(z.shape, np.float32)
+        run_rows(_interval_variance, var.shape[0], intervals, sens, cells, INTERVAL_NOISE**2,
+                 INTERVAL_FLOOR**2, var)  # fmt: skip
         with np.errstate(invalid="ignore", divide="ignore"):
-            have = np.isfinite(z)
-            if not have.any():
-                return
-            # independent bands under the kernel: cells times the stride over the interval
-            bands_averaged = np.maximum(
-                1.0, 4.0 * np.pi * sigma * sigma * self.config.stride / intervals.mean(axis=0))
-            var = (INTERVAL_NOISE**2 / bands_averaged + INTERVAL_FLOOR**2) / (sens * sens)
-            log_z = np.where(have, np.log(z), np.nan)
-            log_z, var = smooth_log_ratio(log_z, sigma, self.config.flow.outlier_sigmas,
-                                          self.config.flow.fill_fraction, var)  # fmt: skip
-            z = np.exp(log_z)
-            std = z * np.sqrt(var)
-            ok = ((std <= self.config.max_depth_std * z)
-                  & (z >= self.config.depth_range.near) & (z <= self.config.depth_range.far))
-            fill = ~np.isfinite(depth_grid) & ok
-            both = np.isfinite(depth_grid) & ok & swept & ~curved
-            w_flow = 1.0 / np.square(std_grid[both])
-            w_int = 1.0 / np.square(std[both])
-            depth_grid[both] = (depth_grid[both] * w_flow + z[both] * w_int) / (w_flow + w_int)
-            std_grid[both] = 1.0 / np.sqrt(w_flow + w_int)
-        depth_grid[fill] = z[fill]
-        std_grid[fill] = std[fill]
+            log_z = np.log(z)  # numpy's log (a kernel's would round otherwise)
+        log_z, var = smooth_log_ratio(log_z, sigma, self.config.flow.outlier_sigmas,
+                                      self.config.flow.fill_fraction, var)  # fmt: skip
+        z = np.exp(log_z)
+        limits = (self.config.max_depth_std, self.config.depth_range.near,
+                  self.config.depth_range.far)  # fmt: skip
+        run_rows(_join_interval_depth, z.shape[0], z, var, swept, curved,
+                 *(np.float32(v) for v in limits), depth_grid, std_grid)  # fmt: skip
 
     def _measure(self, frame, timings: dict, buffers=None):
         """Unmix and measure the bands of ``frame``: ``(bands, counts, grids)``.
@@ -1017,3 +1010,41 @@ def _shift_rows(log_ratio, rows, changed, shift, added):
                 shift[p, i, j] = s
                 a = a or s != 0.0
             added[i, j] = a
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _interval_variance(intervals, sens, cells, noise_var, floor_var, var, i0, i1):
+    """``var`` (float32): the variance of the log depth from the intervals, ``(noise_var /
+    bands + floor_var) / sens^2``, ``bands`` (at least 1) being ``cells`` over the mean of
+    the two intervals; in float64 as numpy, ``sens^2`` in float32.  Rows ``i0 .. i1``."""
+    for i in range(i0, i1):
+        for j in range(var.shape[1]):
+            x = cells / ((intervals[0, i, j] + intervals[1, i, j]) / 2.0)
+            bands = x if x > 1.0 or np.isnan(x) else 1.0  # np.maximum: NaN stays
+            s2 = sens[i, j] * sens[i, j]
+            var[i, j] = (noise_var / bands + floor_var) / s2
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _join_interval_depth(z, var, swept, curved, max_std, near, far, depth, std, i0, i1):
+    """:meth:`DepthPipeline._depth_from_intervals`' last step on rows ``i0 .. i1``: the
+    interval depth ``z`` (its std ``z * sqrt(var)``) where it is within ``max_std`` of it
+    and ``near .. far``: it fills ``depth`` and ``std`` (in place) where they have none, and
+    is averaged with them by precision where a swept cell does not bend (float32 as
+    numpy)."""
+    one = np.float32(1.0)
+    for i in range(i0, i1):
+        for j in range(z.shape[1]):
+            zz = z[i, j]
+            s = zz * np.sqrt(var[i, j])
+            if not (s <= max_std * zz and zz >= near and zz <= far):
+                continue
+            d = depth[i, j]
+            if not np.isfinite(d):
+                depth[i, j] = zz
+                std[i, j] = s
+            elif swept[i, j] and not curved[i, j]:
+                w_flow = one / (std[i, j] * std[i, j])
+                w_int = one / (s * s)
+                depth[i, j] = (d * w_flow + zz * w_int) / (w_flow + w_int)
+                std[i, j] = one / np.sqrt(w_flow + w_int)
