@@ -180,3 +180,49 @@ def test_reading_a_few_cells_again_gives_the_flows_of_reading_them_all():
         strict=True,
     ):
         assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_reread_keeps_the_choice_of_its_numpy_passes():
+    """reread against the whole second reading and the numpy passes it replaced, with
+    added cells and a fallback shift, cells read again in a few places."""
+    rig = resolve_rig("two-projector")
+    model = FlowModel(rig)
+    model.blur[:] = (0.5, 0.2)
+    model.stride = 4
+    rng = np.random.default_rng(11)
+    shape = (150, 140)
+    g = _grids((16.0, 14.0), (60.0, 36.0), shape=shape)
+    g[:, 0] *= rng.uniform(0.9, 1.1, (2, *shape))
+    g[:, 1] *= rng.uniform(0.97, 1.03, (2, *shape))
+    g[:, 0, :, :10] = np.nan
+    g[:, 0, 100:] *= 0.5  # short sweeps
+    params = FlowParams()
+    first = model.combine(g, params)
+    fix = np.zeros((2, *shape), np.float32)
+    fix[:, 20:22, 30:70] = rng.uniform(-0.08, 0.08, (2, 2, 40))
+    fix[:, 120, 130:] = -0.05
+    fix[1, 102:104, 20:120] = -0.6  # read again, these sweeps fail: the first stands
+    added = np.zeros(shape, bool)
+    added[60:63, 5:25] = True  # on the edge of the bands, and beyond
+    added[110, 50:90] = True
+    regrid = g.copy()
+    regrid[:, 0, 60:63, 5:25] = 15.0  # bands the first reading did not have
+    fallback = np.zeros((2, *shape), np.float32)
+    fallback[:, 110, 50:90] = 0.03
+    again = model.reread(first, regrid, fix, params, None, added, fallback + fix)
+    fixed = regrid.copy()
+    fixed[:, 1] *= np.exp(-fix)
+    second = model.recombine(fixed, params)
+    shift = fallback + fix
+    ok = np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
+    new = added & ~np.isfinite(first.log_ratio) & np.isfinite(second.log_ratio)
+    assert ok.any() and new.any() and (~ok & np.isfinite(first.log_ratio)).any()
+    want = [np.where(ok, second.log_ratio, first.log_ratio + shift[0] - shift[1])]
+    want += [np.where(ok, second.flows[p], first.flows[p] * np.exp(shift[p])) for p in range(2)]
+    seconds = (second.log_ratio, *second.flows, second.lr_var, second.lr_sys, second.why)
+    firsts = (*want, first.lr_var, first.lr_sys, first.why)
+    want = [np.where(new, s, f) for s, f in zip(seconds, firsts, strict=True)]
+    want.append(first.swept | (added & second.swept))
+    got = (again.log_ratio, *again.flows, again.lr_var, again.lr_sys, again.why, again.swept)
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True)

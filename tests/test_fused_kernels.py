@@ -12,9 +12,21 @@ import pytest
 
 from lightflow.app.core import causes as cz
 from lightflow.app.core import intervals as iv
-from lightflow.app.core.depth_model import DepthLUT, DepthRange, lookup_depth
-from lightflow.app.core.flow import FlowMaps, _blur_busy, _gauss
+from lightflow.app.core.depth_model import (
+    DepthLUT,
+    DepthRange,
+    depth_and_slope,
+    lookup_depth,
+    update_depth_and_slope,
+)
+from lightflow.app.core.flow import FlowMaps, _blur_busy, _gauss, _gauss_window
 from lightflow.app.core.intervals import IntervalModel
+from lightflow.app.core.pipeline import (
+    INTERVAL_FLOOR,
+    INTERVAL_NOISE,
+    _interval_variance,
+    _join_interval_depth,
+)
 from lightflow.app.core.rig import resolve_rig
 
 
@@ -64,6 +76,24 @@ def test_lookup_reads_the_catmull_rom_of_each_pixel():
             assert z[i, j] == pytest.approx(expected, rel=1e-6)
 
 
+def test_depth_looked_up_again_where_the_log_ratio_changed_is_the_whole_lookup():
+    rng = np.random.default_rng(4)
+    h, w, m = 30, 40, 22
+    table = rng.uniform(0.4, 3.0, (h, w, m)).astype(np.float32)
+    h0 = rng.uniform(-0.5, 0.0, (h, w)).astype(np.float32)
+    inv_dh = rng.uniform(5.0, 30.0, (h, w)).astype(np.float32)
+    lut = DepthLUT(4, h0, inv_dh, table)
+    before = _spiked(rng, (h, w), lo=-0.6, hi=1.5).astype(np.float32)
+    now = before.copy()
+    changed = rng.random((h, w)) < 0.2
+    now[changed] = _spiked(rng, (h, w), lo=-0.6, hi=1.5).astype(np.float32)[changed]
+    z, slope = depth_and_slope(lut, before)
+    update_depth_and_slope(lut, now, before, z, slope)
+    want = depth_and_slope(lut, now)
+    assert np.array_equal(z, want[0], equal_nan=True)
+    assert np.array_equal(slope, want[1], equal_nan=True)
+
+
 @pytest.mark.parametrize("rows", [[], [3], [40, 41, 42, 90], list(range(10, 60))])
 def test_blur_of_the_busy_rows_is_the_whole_blur(rows):
     rng = np.random.default_rng(len(rows))
@@ -72,6 +102,23 @@ def test_blur_of_the_busy_rows_is_the_whole_blur(rows):
     busy = np.zeros(120, bool)
     busy[rows] = True
     assert np.array_equal(_blur_busy(stack, 2.0, busy), _gauss(stack, 2.0))
+
+
+@pytest.mark.parametrize("channels", [6, 7])
+@pytest.mark.parametrize("width", [400, 403, 57])
+def test_blur_of_a_window_is_the_whole_blur(channels, width):
+    """Windows of any size and place, up to the map's edges (where OpenCV's last few
+    values of a row are its own)."""
+    rng = np.random.default_rng(width + channels)
+    stack = rng.random((90, width, channels)).astype(np.float32)
+    stack[rng.random((90, width)) < 0.5] = 0.0
+    whole = _gauss(stack, 2.0)
+    for _ in range(60):
+        r0, c0 = rng.integers(0, 89), rng.integers(0, width - 1)
+        r1, c1 = rng.integers(r0 + 1, 91), rng.integers(c0 + 1, width + 1)
+        out = np.full_like(stack, np.nan)
+        _gauss_window(stack, 2.0, out, r0, r1, c0, c1)
+        assert np.array_equal(out[r0:r1, c0:c1], whole[r0:r1, c0:c1]), (r0, r1, c0, c1)
 
 
 def test_screen_is_the_numpy_screen():
@@ -134,3 +181,43 @@ def test_curved_is_the_numpy_test(share):
         for reach in (8.0, 45.0, 2.0, 1e4):
             expected = _numpy_curved(model, intervals, sparse, reach)
             assert np.array_equal(model._curved(intervals, sparse, reach), expected)
+
+
+def test_interval_depth_kernels_are_their_numpy_passes():
+    """DepthPipeline._depth_from_intervals' variance and last step against the numpy
+    passes they replaced."""
+    rng = np.random.default_rng(5)
+    shape = (50, 70)
+    intervals = _spiked(rng, (2, *shape), lo=5.0, hi=80.0)
+    sens = _spiked(rng, shape, lo=-2.0, hi=2.0).astype(np.float32)
+    cells = 4.0 * np.pi * 6.0 * 6.0 * 4
+    var = np.empty(shape, np.float32)
+    _interval_variance(intervals, sens, cells, INTERVAL_NOISE**2, INTERVAL_FLOOR**2, var, 0, 50)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bands = np.maximum(1.0, cells / intervals.mean(axis=0))
+        want = (INTERVAL_NOISE**2 / bands + INTERVAL_FLOOR**2) / (sens * sens)
+    assert np.array_equal(var, want.astype(np.float32), equal_nan=True)
+
+    z = _spiked(rng, shape, lo=0.2, hi=3.0).astype(np.float32)
+    var = _spiked(rng, shape, lo=0.0, hi=0.01).astype(np.float32)
+    depth = _spiked(rng, shape, share=0.4, lo=0.2, hi=3.0).astype(np.float32)
+    std = _spiked(rng, shape, lo=0.001, hi=0.2).astype(np.float32)
+    swept, curved = rng.random(shape) < 0.8, rng.random(shape) < 0.3
+    max_std, near, far = 0.05, 0.3, 2.7
+    got_depth, got_std = depth.copy(), std.copy()
+    _join_interval_depth(z, var, swept, curved, np.float32(max_std), np.float32(near),
+                         np.float32(far), got_depth, got_std, 0, 50)  # fmt: skip
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        s = z * np.sqrt(var)
+        ok = (s <= max_std * z) & (z >= near) & (z <= far)
+        fill = ~np.isfinite(depth) & ok
+        both = np.isfinite(depth) & ok & swept & ~curved
+        w_flow = 1.0 / np.square(std[both])
+        w_int = 1.0 / np.square(s[both])
+        depth[both] = (depth[both] * w_flow + z[both] * w_int) / (w_flow + w_int)
+        std[both] = 1.0 / np.sqrt(w_flow + w_int)
+    depth[fill] = z[fill]
+    std[fill] = s[fill]
+    assert fill.any() and both.any()
+    assert np.array_equal(got_depth, depth, equal_nan=True)
+    assert np.array_equal(got_std, std, equal_nan=True)

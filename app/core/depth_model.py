@@ -370,15 +370,19 @@ def _spline_at(planes, i, j, t):
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
-def _lookup(logr, h0, inv_dh, planes, z, slope, i0, i1):
+def _lookup(logr, bits, before, h0, inv_dh, planes, z, slope, i0, i1):
     """Depth at ``logr`` on grid rows ``i0 .. i1``; also ``|dz / dlogr|`` unless
     ``slope`` is empty (``planes``: :attr:`DepthLUT.planes`).  Each pixel's samples are
-    read once."""
+    read once.  Unless ``before`` is empty, only the pixels whose log ratio's bits
+    (``bits``, ``logr`` as int32) differ from it."""
     gw = logr.shape[1]
     m = planes.shape[0]
     want_slope = slope.size > 0
+    only_changed = before.size > 0
     for i in range(i0, i1):
         for j in range(gw):
+            if only_changed and bits[i, j] == before[i, j]:
+                continue
             k = inv_dh[i, j]
             h = logr[i, j]
             z[i, j] = np.nan
@@ -416,6 +420,26 @@ def depth_and_slope(lut: DepthLUT, log_ratio: np.ndarray):
     return _run_lookup(lut, log_ratio, with_slope=True)
 
 
+def update_depth_and_slope(lut: DepthLUT, log_ratio: np.ndarray, before: np.ndarray,
+                           depth: np.ndarray, slope: np.ndarray) -> None:  # fmt: skip
+    """:func:`depth_and_slope` of ``log_ratio`` into ``depth`` and ``slope``, which hold those
+    of ``before``: only the pixels whose log ratio changed are looked up again.
+
+    Parameters
+    ----------
+    lut : DepthLUT
+    log_ratio, before : numpy.ndarray
+        ``(h, w)`` float32 log flow ratios, now and when ``depth`` and ``slope`` were
+        looked up (pixels compared bit for bit).
+    depth, slope : numpy.ndarray
+        ``(h, w)`` float32, updated in place.
+    """
+    logr = log_ratio.astype(np.float32, copy=False)
+    old = before.astype(np.float32, copy=False).view(np.int32)
+    run_rows(_lookup, logr.shape[0], logr, logr.view(np.int32), old, lut.h0, lut.inv_dh,
+             lut.planes, depth, slope)  # fmt: skip
+
+
 def lookup_depth(lut: DepthLUT, log_ratio: np.ndarray) -> np.ndarray:
     """Depth ``z`` (metres) for a grid map of measured log flow ratios; NaN outside the LUT.
 
@@ -438,5 +462,7 @@ def _run_lookup(lut: DepthLUT, log_ratio: np.ndarray, with_slope: bool):
     z = np.empty(logr.shape, np.float32)
     slope = np.empty(logr.shape if with_slope else (0, 0), np.float32)
     # bands of grid rows on a thread per core (the kernel releases the GIL)
-    run_rows(_lookup, logr.shape[0], logr, lut.h0, lut.inv_dh, lut.planes, z, slope)
+    every = np.empty((0, 0), np.int32)
+    run_rows(_lookup, logr.shape[0], logr, every, every, lut.h0, lut.inv_dh, lut.planes, z,
+             slope)  # fmt: skip
     return (z, slope) if with_slope else z

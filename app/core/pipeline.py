@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass, field, fields, replace
 
 import cv2
+import numba as nb
 import numpy as np
 
 from . import arcs, snapping
@@ -20,7 +21,14 @@ from . import intervals as iv
 from . import overlap as ov
 from . import response as rsp
 from .arcs import ArcIntervals
-from .depth_model import DepthLUT, DepthRange, depth_and_slope, load_or_build_lut, lookup_depth
+from .depth_model import (
+    DepthLUT,
+    DepthRange,
+    depth_and_slope,
+    load_or_build_lut,
+    lookup_depth,
+    update_depth_and_slope,
+)
 from .errors import ConfigError, FrameError
 from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
 from .intervals import IntervalModel
@@ -28,7 +36,7 @@ from .profile_model import static_width_excess, tables
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 from .snapping import LineSnapping, column_direction, desnap_intervals
-from .threads import run_tasks
+from .threads import run_rows, run_tasks
 
 MAX_BANDS_PER_ROW = 160
 #: print as long as a photo block is filled (``bands.print_block_px``) only in tiles of
@@ -477,8 +485,9 @@ class DepthPipeline:
         if fix.any() or added is not None:
             fm = self.flow_model.reread(fm, grids, fix, cfg.flow, self._periodic, added,
                                         None if fallback is None else fallback + fix)  # fmt: skip
+            # the second reading changes the log ratio near the cells read again only
+            update_depth_and_slope(self.lut, fm.log_ratio, raw, z_raw, dz_dh)
             raw, why = fm.log_ratio, fm.why
-            z_raw, dz_dh = depth_and_slope(self.lut, raw)
         sigma_f = cfg.flow.smoothing_px / cfg.stride
         sigma_s = cfg.flow.sweep_smoothing_px / cfg.stride
         # the final smoothing averages the random part further (by its kernel area)
@@ -544,22 +553,20 @@ class DepthPipeline:
         if not (changed or rescued):
             return None, None
         gh, gw = self.grid_shape
-        old = grids[:, :, rows]
+        # the rows as they were: their intervals, and with rescued bands the other fields
+        old = np.empty((2, grids.shape[1] if rescued else 2, len(rows), gw))
+        _gather_rows(grids, rows, old)
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
                                self._fields, grids[p], rows)  # fmt: skip
-        now = grids[:, :, rows]
-        shift = np.zeros((2, gh, gw), np.float32)
+        ratio = np.empty((2, len(rows), gw))
+        changed = np.empty((len(rows), gw), np.bool_)
+        _compare_rows(old, grids, rows, ratio, changed)
         with np.errstate(invalid="ignore", divide="ignore"):
-            shift[:, rows] = np.nan_to_num(np.log(old[:, 1] / now[:, 1]), nan=0.0, posinf=0.0,
-                                           neginf=0.0)  # fmt: skip
+            np.log(ratio, out=ratio)  # numpy's log (the kernels' would round otherwise)
+        shift = np.zeros((2, gh, gw), np.float32)
         added = np.zeros((gh, gw), bool)
-        added[rows] = (shift[:, rows] != 0).any(axis=0)
-        if rescued:
-            # fields other than the interval (NaN-aware: a cell that gained a band)
-            for f in (0, 2, 3):
-                same = (now[:, f] == old[:, f]) | (np.isnan(now[:, f]) & np.isnan(old[:, f]))
-                added[rows] |= ~same.all(axis=0)
+        _shift_rows(ratio, rows, changed, shift, added)
         return added, shift
 
     def _depth_from_intervals(self, intervals, swept, slow, curved, sigma, depth_grid,
@@ -584,29 +591,22 @@ class DepthPipeline:
         r = int(2.0 * sigma) + 1
         near = cv2.dilate(wanted.view(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
         z, sens = self.intervals.depth(intervals, swept & near.view(bool))
+        if not np.isfinite(z).any():
+            return
+        # independent bands under the kernel: cells times the stride over the interval
+        cells = 4.0 * np.pi * sigma * sigma * self.config.stride
+        var = np.empty(z.shape, np.float32)
+        run_rows(_interval_variance, var.shape[0], intervals, sens, cells, INTERVAL_NOISE**2,
+                 INTERVAL_FLOOR**2, var)  # fmt: skip
         with np.errstate(invalid="ignore", divide="ignore"):
-            have = np.isfinite(z)
-            if not have.any():
-                return
-            # independent bands under the kernel: cells times the stride over the interval
-            bands_averaged = np.maximum(
-                1.0, 4.0 * np.pi * sigma * sigma * self.config.stride / intervals.mean(axis=0))
-            var = (INTERVAL_NOISE**2 / bands_averaged + INTERVAL_FLOOR**2) / (sens * sens)
-            log_z = np.where(have, np.log(z), np.nan)
-            log_z, var = smooth_log_ratio(log_z, sigma, self.config.flow.outlier_sigmas,
-                                          self.config.flow.fill_fraction, var)  # fmt: skip
-            z = np.exp(log_z)
-            std = z * np.sqrt(var)
-            ok = ((std <= self.config.max_depth_std * z)
-                  & (z >= self.config.depth_range.near) & (z <= self.config.depth_range.far))
-            fill = ~np.isfinite(depth_grid) & ok
-            both = np.isfinite(depth_grid) & ok & swept & ~curved
-            w_flow = 1.0 / np.square(std_grid[both])
-            w_int = 1.0 / np.square(std[both])
-            depth_grid[both] = (depth_grid[both] * w_flow + z[both] * w_int) / (w_flow + w_int)
-            std_grid[both] = 1.0 / np.sqrt(w_flow + w_int)
-        depth_grid[fill] = z[fill]
-        std_grid[fill] = std[fill]
+            log_z = np.log(z)  # numpy's log (a kernel's would round otherwise)
+        log_z, var = smooth_log_ratio(log_z, sigma, self.config.flow.outlier_sigmas,
+                                      self.config.flow.fill_fraction, var)  # fmt: skip
+        z = np.exp(log_z)
+        limits = (self.config.max_depth_std, self.config.depth_range.near,
+                  self.config.depth_range.far)  # fmt: skip
+        run_rows(_join_interval_depth, z.shape[0], z, var, swept, curved,
+                 *(np.float32(v) for v in limits), depth_grid, std_grid)  # fmt: skip
 
     def _measure(self, frame, timings: dict, buffers=None):
         """Unmix and measure the bands of ``frame``: ``(bands, counts, grids)``.
@@ -960,3 +960,91 @@ def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.nda
     valid = np.empty(n, np.bool_)
     m = bd.pack_bands(bands, counts, row_y, rows, starts, ends, valid)
     return BandSet(channel, rows[:m], starts[:m], ends[:m], valid[:m])
+
+
+# The kernels below fuse what were numpy passes over the rows that the arcs changed
+# (:meth:`DepthPipeline._arc_intervals`), with numpy's arithmetic.
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather_rows(grids, rows, out):
+    """``out[p, f, q]``: row ``rows[q]`` of field ``f`` (the first ``out.shape[1]``) of
+    pattern ``p`` of ``grids``."""
+    for p in range(2):
+        for f in range(out.shape[1]):
+            for q in range(rows.size):
+                out[p, f, q] = grids[p, f, rows[q]]
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _compare_rows(old, grids, rows, ratio, changed):
+    """``ratio``: per pattern, the old interval (``old[:, 1]``, rows ``rows`` of ``grids``
+    as they were) over the new; ``changed``: with the four fields in ``old``, whether
+    another field of the cell changed (NaN-aware: a cell that gained a band)."""
+    for q in range(rows.size):
+        i = rows[q]
+        for j in range(ratio.shape[2]):
+            c = False
+            for p in range(2):
+                ratio[p, q, j] = old[p, 1, q, j] / grids[p, 1, i, j]
+                if old.shape[1] > 2:
+                    for f in (0, 2, 3):
+                        a = old[p, f, q, j]
+                        b = grids[p, f, i, j]
+                        if a != b and not (np.isnan(a) and np.isnan(b)):
+                            c = True
+            changed[q, j] = c
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _shift_rows(log_ratio, rows, changed, shift, added):
+    """``shift`` (float32): ``log_ratio`` (per pattern, on rows ``rows``), 0 where it is not
+    finite; ``added``: a shift other than 0, or ``changed``."""
+    for q in range(rows.size):
+        i = rows[q]
+        for j in range(shift.shape[2]):
+            a = changed[q, j]
+            for p in range(2):
+                v = log_ratio[p, q, j]
+                s = np.float32(v) if np.isfinite(v) else np.float32(0.0)
+                shift[p, i, j] = s
+                a = a or s != 0.0
+            added[i, j] = a
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _interval_variance(intervals, sens, cells, noise_var, floor_var, var, i0, i1):
+    """``var`` (float32): the variance of the log depth from the intervals, ``(noise_var /
+    bands + floor_var) / sens^2``, ``bands`` (at least 1) being ``cells`` over the mean of
+    the two intervals; in float64 as numpy, ``sens^2`` in float32.  Rows ``i0 .. i1``."""
+    for i in range(i0, i1):
+        for j in range(var.shape[1]):
+            x = cells / ((intervals[0, i, j] + intervals[1, i, j]) / 2.0)
+            bands = x if x > 1.0 or np.isnan(x) else 1.0  # np.maximum: NaN stays
+            s2 = sens[i, j] * sens[i, j]
+            var[i, j] = (noise_var / bands + floor_var) / s2
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True)
+def _join_interval_depth(z, var, swept, curved, max_std, near, far, depth, std, i0, i1):
+    """:meth:`DepthPipeline._depth_from_intervals`' last step on rows ``i0 .. i1``: the
+    interval depth ``z`` (its std ``z * sqrt(var)``) where it is within ``max_std`` of it
+    and ``near .. far``: it fills ``depth`` and ``std`` (in place) where they have none, and
+    is averaged with them by precision where a swept cell does not bend (float32 as
+    numpy)."""
+    one = np.float32(1.0)
+    for i in range(i0, i1):
+        for j in range(z.shape[1]):
+            zz = z[i, j]
+            s = zz * np.sqrt(var[i, j])
+            if not (s <= max_std * zz and zz >= near and zz <= far):
+                continue
+            d = depth[i, j]
+            if not np.isfinite(d):
+                depth[i, j] = zz
+                std[i, j] = s
+            elif swept[i, j] and not curved[i, j]:
+                w_flow = one / (std[i, j] * std[i, j])
+                w_int = one / (s * s)
+                depth[i, j] = (d * w_flow + zz * w_int) / (w_flow + w_int)
+                std[i, j] = one / np.sqrt(w_flow + w_int)
