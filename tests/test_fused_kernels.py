@@ -118,7 +118,10 @@ def test_blur_of_a_window_is_the_whole_blur(channels, width):
         r1, c1 = rng.integers(r0 + 1, 91), rng.integers(c0 + 1, width + 1)
         out = np.full_like(stack, np.nan)
         _gauss_window(stack, 2.0, out, r0, r1, c0, c1)
-        assert np.array_equal(out[r0:r1, c0:c1], whole[r0:r1, c0:c1]), (r0, r1, c0, c1)
+        # bit for bit on this machine's OpenCV (windows start on 16 columns); another build
+        # may round a window's first or last vector differently: float rounding only
+        np.testing.assert_allclose(out[r0:r1, c0:c1], whole[r0:r1, c0:c1], rtol=1e-6,
+                                   atol=1e-7, err_msg=str((r0, r1, c0, c1)))  # fmt: skip
 
 
 def test_screen_is_the_numpy_screen():
