@@ -48,15 +48,21 @@ def test_lut_planes_hold_the_table():
     assert lut.nbytes == 2 * 5 * 7 * 4 + table.nbytes
 
 
+def _random_lut(rng, h, w, m, unusable=0):
+    """A depth table of random samples: ``(lut, table, h0, inv_dh)``; the first
+    ``unusable`` pixels of row 0 have no usable samples."""
+    table = rng.uniform(0.4, 3.0, (h, w, m)).astype(np.float32)
+    h0 = rng.uniform(-0.5, 0.0, (h, w)).astype(np.float32)
+    inv_dh = rng.uniform(5.0, 30.0, (h, w)).astype(np.float32)
+    inv_dh[0, :unusable] = 0.0
+    return DepthLUT(4, h0, inv_dh, table), table, h0, inv_dh
+
+
 def test_lookup_reads_the_catmull_rom_of_each_pixel():
     """The sample-major lookup against the spline written out per pixel."""
     rng = np.random.default_rng(1)
     h, w, m = 6, 9, 22
-    table = rng.uniform(0.4, 3.0, (h, w, m)).astype(np.float32)
-    h0 = rng.uniform(-0.5, 0.0, (h, w)).astype(np.float32)
-    inv_dh = rng.uniform(5.0, 30.0, (h, w)).astype(np.float32)
-    inv_dh[0, :3] = 0.0  # unusable pixels
-    lut = DepthLUT(4, h0, inv_dh, table)
+    lut, table, h0, inv_dh = _random_lut(rng, h, w, m, unusable=3)
     logr = _spiked(rng, (h, w), lo=-0.6, hi=1.5).astype(np.float32)
     z = lookup_depth(lut, logr)
     for i in range(h):
@@ -79,10 +85,7 @@ def test_lookup_reads_the_catmull_rom_of_each_pixel():
 def test_depth_looked_up_again_where_the_log_ratio_changed_is_the_whole_lookup():
     rng = np.random.default_rng(4)
     h, w, m = 30, 40, 22
-    table = rng.uniform(0.4, 3.0, (h, w, m)).astype(np.float32)
-    h0 = rng.uniform(-0.5, 0.0, (h, w)).astype(np.float32)
-    inv_dh = rng.uniform(5.0, 30.0, (h, w)).astype(np.float32)
-    lut = DepthLUT(4, h0, inv_dh, table)
+    lut = _random_lut(rng, h, w, m)[0]
     before = _spiked(rng, (h, w), lo=-0.6, hi=1.5).astype(np.float32)
     now = before.copy()
     changed = rng.random((h, w)) < 0.2
