@@ -297,6 +297,9 @@ def _depth_around(depth, i, ca, cb, off, stride, reach):
     jb = int(math.floor((cb - off) / stride + 0.5))
     lo = min(ja, jb)
     hi = max(ja, jb)
+    if 0 <= ja < gw and depth[i, ja] > 0.0:
+        # the cell at ca itself: at distance 0 and nearest to ca, the search's answer
+        return depth[i, ja]
     best = reach * reach + 1
     best_a = 0
     z = np.nan
@@ -336,6 +339,15 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                 ratio[r, b] = np.nan
         if i >= gh:
             continue
+        if second:
+            # only the odd rows, and only beside a row of the first pass that changes: a
+            # pass over each of those rows spares a search of it per band
+            if r % 2 == 0:
+                continue
+            above = _row_changes(ratio, counts, r - 1)
+            below = _row_changes(ratio, counts, r + 1)
+            if not (above or below):
+                continue
         for b in range(n):
             code = bands[r, b, F_VALID]
             c0 = bands[r, b, F_CENTRE]
@@ -345,9 +357,10 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                 # the rows between: only near a band of the first pass (the even rows, not
                 # written now) above or below whose interval changes
                 if second and not (
-                        _changes_near(ratio, counts, bands, r - 1, c0, bands[r, b, F_INTERVAL], 0.0)
-                        or _changes_near(ratio, counts, bands, r + 1, c0, bands[r, b, F_INTERVAL],
-                                         0.0)):  # fmt: skip
+                        above and _changes_near(ratio, counts, bands, r - 1, c0,
+                                                bands[r, b, F_INTERVAL], 0.0)
+                        or below and _changes_near(ratio, counts, bands, r + 1, c0,
+                                                   bands[r, b, F_INTERVAL], 0.0)):  # fmt: skip
                     continue
                 cp = bands[r, b - 1, F_CENTRE]
                 cn = bands[r, b + 1, F_CENTRE]
@@ -436,6 +449,18 @@ def _rescue(bands, r, b, arc, rescued):
         bands[r, b, F_INTERVAL] = arc
         bands[r, b, F_VALID] = BAND_VALID
         rescued[r] += 1
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _row_changes(ratio, counts, r):
+    """Whether a band of row ``r`` has its interval changed by at least half of
+    :data:`MIN_CHANGE` (:func:`_changes_near` finds one near a column only then)."""
+    if r < 0 or r >= counts.shape[0]:
+        return False
+    for q in range(counts[r]):
+        if abs(ratio[r, q] - 1.0) >= 0.5 * MIN_CHANGE:
+            return True
+    return False
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
