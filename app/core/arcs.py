@@ -199,7 +199,10 @@ def _ray(rays, r, x):
             rays[r, j, 1] + f * (rays[r, j + 1, 1] - rays[r, j, 1]))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+# The arcs' kernels allocate nothing: compiled without numba's reference counting
+# (``_nrt=False``), whose atomic counts on the rig's and the bands' arrays at every call
+# (both threads on the same arrays) took a third of their time
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     """Depth along the ray ``(rx, ry, 1)`` whose point the projector lights at column
     ``target`` (near ``z``); NaN when there is none near."""
@@ -243,7 +246,7 @@ def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     return np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens,
                   distorted, sgn, pitch):  # fmt: skip
     """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
@@ -318,7 +321,7 @@ def _depth_around(depth, i, ca, cb, off, stride, reach):
     return z
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, rot, shift, kmat,
               lens, distorted, sgn, pitch, itol, ratio, rescued, second, r0, r1):  # fmt: skip
     """Measured rows ``r0 .. r1`` of one pattern: each band's arc interval over its secant in
@@ -418,7 +421,7 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                     _rescue(bands, r, b, arc, rescued)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0, rot, shift, kmat, lens,
                  distorted, sgn, pitch):  # fmt: skip
     """Whether the arcs through band ``b``'s line and its next two on either side both
@@ -479,7 +482,7 @@ def _changes_near(ratio, counts, bands, r, c, reach, dev):
     return False
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _apply_rows(bands, counts, ratio, changed, r0, r1):
     """Measured rows ``r0 .. r1``: scale the intervals whose arc changes them by at least
     :data:`MIN_CHANGE` where a band beside, above or below changes the same way."""
