@@ -199,7 +199,10 @@ def _ray(rays, r, x):
             rays[r, j, 1] + f * (rays[r, j + 1, 1] - rays[r, j, 1]))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+# The arcs' kernels allocate nothing: compiled without numba's reference counting
+# (``_nrt=False``), whose atomic counts on the rig's and the bands' arrays at every call
+# (both threads on the same arrays) took a third of their time
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     """Depth along the ray ``(rx, ry, 1)`` whose point the projector lights at column
     ``target`` (near ``z``); NaN when there is none near."""
@@ -243,7 +246,7 @@ def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     return np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens,
                   distorted, sgn, pitch):  # fmt: skip
     """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
@@ -297,6 +300,9 @@ def _depth_around(depth, i, ca, cb, off, stride, reach):
     jb = int(math.floor((cb - off) / stride + 0.5))
     lo = min(ja, jb)
     hi = max(ja, jb)
+    if 0 <= ja < gw and depth[i, ja] > 0.0:
+        # the cell at ca itself: at distance 0 and nearest to ca, the search's answer
+        return depth[i, ja]
     best = reach * reach + 1
     best_a = 0
     z = np.nan
@@ -315,7 +321,7 @@ def _depth_around(depth, i, ca, cb, off, stride, reach):
     return z
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, rot, shift, kmat,
               lens, distorted, sgn, pitch, itol, ratio, rescued, second, r0, r1):  # fmt: skip
     """Measured rows ``r0 .. r1`` of one pattern: each band's arc interval over its secant in
@@ -336,6 +342,15 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                 ratio[r, b] = np.nan
         if i >= gh:
             continue
+        if second:
+            # only the odd rows, and only beside a row of the first pass that changes: a
+            # pass over each of those rows spares a search of it per band
+            if r % 2 == 0:
+                continue
+            above = _row_changes(ratio, counts, r - 1)
+            below = _row_changes(ratio, counts, r + 1)
+            if not (above or below):
+                continue
         for b in range(n):
             code = bands[r, b, F_VALID]
             c0 = bands[r, b, F_CENTRE]
@@ -345,9 +360,10 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                 # the rows between: only near a band of the first pass (the even rows, not
                 # written now) above or below whose interval changes
                 if second and not (
-                        _changes_near(ratio, counts, bands, r - 1, c0, bands[r, b, F_INTERVAL], 0.0)
-                        or _changes_near(ratio, counts, bands, r + 1, c0, bands[r, b, F_INTERVAL],
-                                         0.0)):  # fmt: skip
+                        above and _changes_near(ratio, counts, bands, r - 1, c0,
+                                                bands[r, b, F_INTERVAL], 0.0)
+                        or below and _changes_near(ratio, counts, bands, r + 1, c0,
+                                                   bands[r, b, F_INTERVAL], 0.0)):  # fmt: skip
                     continue
                 cp = bands[r, b - 1, F_CENTRE]
                 cn = bands[r, b + 1, F_CENTRE]
@@ -405,7 +421,7 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                     _rescue(bands, r, b, arc, rescued)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0, rot, shift, kmat, lens,
                  distorted, sgn, pitch):  # fmt: skip
     """Whether the arcs through band ``b``'s line and its next two on either side both
@@ -439,6 +455,18 @@ def _rescue(bands, r, b, arc, rescued):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def _row_changes(ratio, counts, r):
+    """Whether a band of row ``r`` has its interval changed by at least half of
+    :data:`MIN_CHANGE` (:func:`_changes_near` finds one near a column only then)."""
+    if r < 0 or r >= counts.shape[0]:
+        return False
+    for q in range(counts[r]):
+        if abs(ratio[r, q] - 1.0) >= 0.5 * MIN_CHANGE:
+            return True
+    return False
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _changes_near(ratio, counts, bands, r, c, reach, dev):
     """Whether a band of row ``r`` within ``reach`` of column ``c`` has its interval changed
     by at least half of :data:`MIN_CHANGE`, the same way as ``dev`` (either way when ``dev``
@@ -454,7 +482,7 @@ def _changes_near(ratio, counts, bands, r, c, reach, dev):
     return False
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
 def _apply_rows(bands, counts, ratio, changed, r0, r1):
     """Measured rows ``r0 .. r1``: scale the intervals whose arc changes them by at least
     :data:`MIN_CHANGE` where a band beside, above or below changes the same way."""
