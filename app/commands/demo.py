@@ -509,7 +509,8 @@ def run(args: argparse.Namespace) -> int:
 
     from lightflow.app.core import bands as bd
     from lightflow.app.core.depth_model import load_or_build_lut
-    from lightflow.app.core.pipeline import DepthPipeline
+    from lightflow.app.core.flow import warm_up_reread
+    from lightflow.app.core.pipeline import DepthPipeline, warm_up_kernels
     from lightflow.app.core.profile_model import MEASURED_PATH, prefetch_tables, tables_path
     from lightflow.app.core.rig import resolve_rig
     from lightflow.app.options import close_all, pipeline_config
@@ -614,6 +615,9 @@ def run(args: argparse.Namespace) -> int:
                 pipeline = DepthPipeline(rig, config, lut=lut)
                 pipeline.warm_up(optional=helper is None)
                 if helper is not None:
+                    # the second reading's kernels here: the helper has more left to compile
+                    warm_up_reread()
+                    warm_up_kernels()
                     helper.overlap.wait()  # compiled there meanwhile: loaded from the cache
                     pipeline.warm_up_optional()
             finally:

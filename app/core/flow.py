@@ -1079,6 +1079,27 @@ def _tile_windows(tiles: np.ndarray, tile_rows: int, tile_cols: int) -> list:
             for r0, r1, c0, c1 in out]  # fmt: skip
 
 
+def warm_up_reread() -> None:
+    """Compile (or load) the kernels of :meth:`FlowModel.reread`'s windows and of its choice
+    between the readings, with a frame's argument types.
+
+    Only a frame whose line intervals the arcs or the interval model correct reaches
+    them, so a test image of straight stripes never does: on a cold start they compiled
+    in the first frame (about 4 s of CPU).  A demo's helper process calls this.
+    """
+    todo = np.zeros((4, 4), np.bool_)
+    todo[1, 1] = True
+    _reread_windows(todo, 2, 2)
+
+    def f32(*shape):
+        return np.zeros(shape, np.float32)
+
+    why = np.zeros((4, 4), np.uint8)
+    _take_again(f32(4, 4), f32(2, 4, 4), f32(4, 4), f32(4, 4), why, f32(2, 4, 4), f32(2, 4, 4),
+                todo, True, f32(2, 4, 4), f32(4, 4), f32(2, 4, 4), f32(4, 4), f32(4, 4),
+                why.copy(), np.zeros((4, 4), np.bool_), 0, 4, 0, 4)  # fmt: skip
+
+
 def _reread_windows(todo: np.ndarray, reach: int, parts: int) -> list:
     """Disjoint windows ``(r0, r1, c0, c1)`` that cover the cells within ``reach`` of a
     ``todo`` one (bool per cell), in whole tiles of :data:`REREAD_TILE`.

@@ -30,7 +30,14 @@ from .depth_model import (
     update_depth_and_slope,
 )
 from .errors import ConfigError, FrameError
-from .flow import STILL_LINE_FRAMES, FlowModel, FlowParams, smooth_log_ratio, still_lines
+from .flow import (
+    STILL_LINE_FRAMES,
+    FlowModel,
+    FlowParams,
+    smooth_log_ratio,
+    still_lines,
+    warm_up_reread,
+)
 from .intervals import IntervalModel
 from .profile_model import static_width_excess, tables
 from .results import BandSet, FrameResult
@@ -375,8 +382,10 @@ class DepthPipeline:
         compilation on a first run, the largest part of the pipeline's), the depth
         from the line intervals (about 1.3 s; it runs only where lines move too little),
         the whole-column intervals (about 3.7 s; only for patterns whose lines are
-        off their nominal centres) and the arcs' intervals (about 2.3 s;
-        :func:`lightflow.app.core.arcs.warm_up`).
+        off their nominal centres), the arcs' intervals (about 2.3 s;
+        :func:`lightflow.app.core.arcs.warm_up`) and the second reading of the flows and the
+        interval depth's own kernels (about 4 s; :func:`warm_up_kernels`,
+        :func:`lightflow.app.core.flow.warm_up_reread`).
         """
         if self._overlap is not None:
             ov.warm_up(self._overlap)
@@ -386,6 +395,9 @@ class DepthPipeline:
             snapping.warm_up()
         if self._arcs is not None:
             arcs.warm_up()
+        # the second reading and the interval depth: reached by no test image of stripes
+        warm_up_reread()
+        warm_up_kernels()
 
     #: attributes that are not cross-frame state: the rig, options, tables, scratch
     _CONSTANT = frozenset({"rig", "config", "lut", "flow_model", "intervals", "_buffers",
@@ -960,6 +972,31 @@ def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.nda
     valid = np.empty(n, np.bool_)
     m = bd.pack_bands(bands, counts, row_y, rows, starts, ends, valid)
     return BandSet(channel, rows[:m], starts[:m], ends[:m], valid[:m])
+
+
+def warm_up_kernels() -> None:
+    """Compile (or load) the kernels of :meth:`DepthPipeline._arc_intervals` and
+    :meth:`DepthPipeline._depth_from_intervals`, with a frame's argument types.
+
+    A test image of straight stripes reaches neither (no interval changes, no lines that
+    move too little): on a cold start they compiled in the first frame.  A demo's helper
+    process calls this.
+    """
+    grids = np.zeros((2, 4, 4, 4))
+    rows = np.array([0, 2], np.int64)
+    old = np.empty((2, 4, 2, 4))
+    _gather_rows(grids, rows, old)
+    ratio = np.empty((2, 2, 4))
+    changed = np.empty((2, 4), np.bool_)
+    _compare_rows(old, grids, rows, ratio, changed)
+    _shift_rows(ratio, rows, changed, np.zeros((2, 4, 4), np.float32), np.zeros((4, 4), bool))
+    f32 = np.zeros((4, 4), np.float32)
+    _interval_variance(grids[:, 1], f32, 1.0, INTERVAL_NOISE**2, INTERVAL_FLOOR**2, f32.copy(), 0,
+                       4)  # fmt: skip
+    flags = np.zeros((4, 4), bool)
+    one = np.float32(1.0)
+    _join_interval_depth(f32, f32.copy(), flags, flags.copy(), one, one, one, f32.copy(),
+                         f32.copy(), 0, 4)  # fmt: skip
 
 
 # The kernels below fuse what were numpy passes over the rows that the arcs changed
