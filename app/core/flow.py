@@ -1085,7 +1085,8 @@ def warm_up_reread() -> None:
 
     Only a frame whose line intervals the arcs or the interval model correct reaches
     them, so a test image of straight stripes never does: on a cold start they compiled
-    in the first frame (about 4 s of CPU).  A demo's helper process calls this.
+    in the first frame.  :meth:`.pipeline.DepthPipeline.warm_up_optional` calls this; the demo calls
+    it before it waits for its helper process.
     """
     todo = np.zeros((4, 4), np.bool_)
     todo[1, 1] = True

@@ -979,8 +979,9 @@ def warm_up_kernels() -> None:
     :meth:`DepthPipeline._depth_from_intervals`, with a frame's argument types.
 
     A test image of straight stripes reaches neither (no interval changes, no lines that
-    move too little): on a cold start they compiled in the first frame.  A demo's helper
-    process calls this.
+    move too little): on a cold start they compiled in the first frame.
+    :meth:`DepthPipeline.warm_up_optional` calls this; the demo calls it before it waits
+    for its helper process.
     """
     grids = np.zeros((2, 4, 4, 4))
     rows = np.array([0, 2], np.int64)
