@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lightflow.app.cli import main as cli_main
-from lightflow.app.commands.demo import AccuracySink, simulated_leak
+from lightflow.app.commands.demo import AccuracySink, simulated_crosstalk
 from lightflow.app.core.rig import resolve_rig
 from lightflow.app.evaluation import evaluate_frame
 from lightflow.drivers.sim.scenes import get_scene
@@ -78,9 +78,12 @@ def test_no_depth_at_all_is_said_plainly():
     ]
 
 
-def test_leak_is_the_simulated_cameras_mean_of_both_directions():
+def test_leak_is_the_simulated_cameras_per_pattern():
     # SensorModel: red gets 0.04 of the blue light, blue 0.03 of the red
-    assert simulated_leak(resolve_rig("two-projector")) == pytest.approx(0.035)
+    rig = resolve_rig("two-projector")
+    channels = [pat.channel for _, pat in rig.patterns]
+    leaks = dict(zip(channels, simulated_crosstalk(rig), strict=True))
+    assert leaks == {"red": pytest.approx(0.04), "blue": pytest.approx(0.03)}
 
 
 @pytest.mark.parametrize("value", ["-0.1", "lots", "0.7"])
