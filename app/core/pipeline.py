@@ -566,8 +566,7 @@ class DepthPipeline:
             return None, None
         gh, gw = self.grid_shape
         # the rows as they were: their intervals, and with rescued bands the other fields
-        old = np.empty((2, grids.shape[1] if rescued else 2, len(rows), gw))
-        _gather_rows(grids, rows, old)
+        old = grids[:, :grids.shape[1] if rescued else 2].take(rows, axis=2)  # C order
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
                                self._fields, grids[p], rows)  # fmt: skip
@@ -985,8 +984,7 @@ def warm_up_kernels() -> None:
     """
     grids = np.zeros((2, 4, 4, 4))
     rows = np.array([0, 2], np.int64)
-    old = np.empty((2, 4, 2, 4))
-    _gather_rows(grids, rows, old)
+    old = grids.take(rows, axis=2)
     ratio = np.empty((2, 2, 4))
     changed = np.empty((2, 4), np.bool_)
     _compare_rows(old, grids, rows, ratio, changed)
@@ -1002,16 +1000,6 @@ def warm_up_kernels() -> None:
 
 # The kernels below fuse what were numpy passes over the rows that the arcs changed
 # (:meth:`DepthPipeline._arc_intervals`), with numpy's arithmetic.
-
-
-@nb.njit(cache=True, nogil=True)
-def _gather_rows(grids, rows, out):
-    """``out[p, f, q]``: row ``rows[q]`` of field ``f`` (the first ``out.shape[1]``) of
-    pattern ``p`` of ``grids``."""
-    for p in range(2):
-        for f in range(out.shape[1]):
-            for q in range(rows.size):
-                out[p, f, q] = grids[p, f, rows[q]]
 
 
 @nb.njit(cache=True, error_model="numpy", nogil=True)
