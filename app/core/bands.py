@@ -1478,7 +1478,9 @@ def _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbu
     acc = np.zeros((nf, gw))
     n = np.zeros(gw, np.int64)
     for q in range(k):
-        _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, 0, tbuf)
+        # np.int64(0), not 0: a literal would compile _rasterise_row a second time
+        _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, np.int64(0),
+                       tbuf)  # fmt: skip
         for j in range(gw):
             if not np.isnan(buf[0, 0, j]):
                 n[j] += 1
