@@ -159,7 +159,7 @@ def _sinc(x):
     return math.sin(math.pi * x) / (math.pi * x)
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def chirp_position(t, tc, g):
     """Position at which lines ``B (1 + g (t - tc))`` apart are ``B`` apart.
 
@@ -171,7 +171,7 @@ def chirp_position(t, tc, g):
     return tc + math.log1p(g * (t - tc)) / g
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
 
@@ -309,7 +309,7 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     return math.sqrt(rss / max(N - P, 1))
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def transfer(m, B, w, sigma):
     """``K_m``: the line box, the pixel box and the blur at harmonic ``m / B``."""
     return _sinc(m * w / B) * _sinc(m / B) * math.exp(-2.0 * (math.pi * sigma * m / B) ** 2)
@@ -401,7 +401,7 @@ def _pulse_fit(coef, M, B, K, hfx):
     return out
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, params, out):
     """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
 

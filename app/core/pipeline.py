@@ -39,6 +39,7 @@ from .flow import (
     warm_up_reread,
 )
 from .intervals import IntervalModel
+from .kernel_options import NO_CFUNC
 from .profile_model import static_width_excess, tables
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
@@ -1002,7 +1003,7 @@ def warm_up_kernels() -> None:
 # (:meth:`DepthPipeline._arc_intervals`), with numpy's arithmetic.
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _compare_rows(old, grids, rows, ratio, changed):
     """``ratio``: per pattern, the old interval (``old[:, 1]``, rows ``rows`` of ``grids``
     as they were) over the new; ``changed``: with the four fields in ``old``, whether
@@ -1022,7 +1023,7 @@ def _compare_rows(old, grids, rows, ratio, changed):
             changed[q, j] = c
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _shift_rows(log_ratio, rows, changed, shift, added):
     """``shift`` (float32): ``log_ratio`` (per pattern, on rows ``rows``), 0 where it is not
     finite; ``added``: a shift other than 0, or ``changed``."""
@@ -1038,7 +1039,7 @@ def _shift_rows(log_ratio, rows, changed, shift, added):
             added[i, j] = a
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _interval_variance(intervals, sens, cells, noise_var, floor_var, var, i0, i1):
     """``var`` (float32): the variance of the log depth from the intervals, ``(noise_var /
     bands + floor_var) / sens^2``, ``bands`` (at least 1) being ``cells`` over the mean of
@@ -1051,7 +1052,7 @@ def _interval_variance(intervals, sens, cells, noise_var, floor_var, var, i0, i1
             var[i, j] = (noise_var / bands + floor_var) / s2
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _join_interval_depth(z, var, swept, curved, max_std, near, far, depth, std, i0, i1):
     """:meth:`DepthPipeline._depth_from_intervals`' last step on rows ``i0 .. i1``: the
     interval depth ``z`` (its std ``z * sqrt(var)``) where it is within ``max_std`` of it
