@@ -338,7 +338,7 @@ def _close_rows(dilated, lo, flat, rows, r, level, out):
             o[j] = (closed[j] & near) | (row[j] & (near ^ ones))
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _walk_left(x, j, level):
     # from j (x[j] >= level) left to the last sample at or above level
     while j > 0 and x[j - 1] >= level:
@@ -346,7 +346,7 @@ def _walk_left(x, j, level):
     return j
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _walk_right(x, j, level):
     n = x.shape[0]
     while j < n - 1 and x[j + 1] >= level:
@@ -354,7 +354,7 @@ def _walk_right(x, j, level):
     return j
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _at_left(x, j, level):
     # the crossing below a walk's end j, linearly interpolated
     if j == 0:
@@ -366,7 +366,7 @@ def _at_left(x, j, level):
     return (j - 1) + (level - a) / (b - a)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _at_right(x, j, level):
     n = x.shape[0]
     if j == n - 1:
@@ -894,7 +894,7 @@ def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, inner_l, inner_r, sym_tol, o
     out[k, F_VALID] = code
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _gap(seg_a, seg_b, ns, n, g):
     """First and last sample of gap ``g`` (left of segment ``g``; the outer two reach
     24 samples past the outermost segments)."""
