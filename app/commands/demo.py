@@ -267,10 +267,12 @@ def cpu_seconds() -> float:
 class Helper:
     """The helper process: half of the band detector's kernels, the tables, the renderer.
 
-    Last, the kernels of the arcs' line intervals, of the depth from the line intervals and
-    of overlapping bands (:func:`lightflow.app.core.arcs.warm_up`,
-    :func:`lightflow.app.core.intervals.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
-    which this process would otherwise compile at the end of the pipeline's warm-up.
+    Last, the kernels of the arcs' line intervals and of overlapping bands
+    (:func:`lightflow.app.core.arcs.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
+    which this process would otherwise compile at the end of the pipeline's warm-up.  This
+    process compiles meanwhile the kernels of the depth from the line intervals
+    (:func:`lightflow.app.core.intervals.warm_up`) and of the grid rows the arcs change
+    (:func:`lightflow.app.core.pipeline.warm_up_kernels`): both end at about the same time.
 
     It compiles the detector's ``sliding_mid`` while this process compiles
     ``bands_in_row`` (numba's on-disk cache hands each to the other process),
@@ -307,9 +309,8 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
-        "from lightflow.app.core import arcs, intervals, overlap\n"
+        "from lightflow.app.core import arcs, overlap\n"
         "arcs.warm_up()\n"
-        "intervals.warm_up()\n"
         "overlap.warm_up()\n"
         "print('overlap', flush=True)\n"
     )
@@ -508,6 +509,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from lightflow.app.core import bands as bd
+    from lightflow.app.core import intervals
     from lightflow.app.core.depth_model import load_or_build_lut
     from lightflow.app.core.flow import warm_up_reread
     from lightflow.app.core.pipeline import DepthPipeline, warm_up_kernels
@@ -615,9 +617,11 @@ def run(args: argparse.Namespace) -> int:
                 pipeline = DepthPipeline(rig, config, lut=lut)
                 pipeline.warm_up(optional=helper is None)
                 if helper is not None:
-                    # the second reading's kernels here: the helper has more left to compile
+                    # the second reading's and the interval depth's kernels here: the helper
+                    # has more left to compile
                     warm_up_reread()
                     warm_up_kernels()
+                    intervals.warm_up()
                     helper.overlap.wait()  # compiled there meanwhile: loaded from the cache
                     pipeline.warm_up_optional()
             finally:

@@ -506,13 +506,14 @@ def _apply_rows(bands, counts, ratio, changed, r0, r1):
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the arcs' kernels, and the rasterising of
-    listed grid rows they use, on two bands of an example rig's row.
+    """Compile (or load from numba's cache) the arcs' kernels on two bands of an example
+    rig's row (the rasterising of the grid rows they change:
+    :func:`lightflow.app.core.pipeline.warm_up_kernels`).
 
     The demo's helper process runs this while the main one compiles the rest of the
-    pipeline (about 2.3 s of CPU on a cold start).
+    pipeline (about 3.5 s of CPU on a cold start).
     """
-    from .bands import N_FIELDS, rasterise_cells
+    from .bands import N_FIELDS
     from .rig import resolve_rig
 
     rig = resolve_rig("two-projector")
@@ -528,6 +529,3 @@ def warm_up() -> None:
         bands[p, 0, :5, F_RAMP] = 1.0
     counts = np.full((2, 1), 5, np.int64)
     arcs.correct(bands, counts, np.full((2, 1, 8), np.nan), np.full((1, 400), 0.8), 1, 4, 0.25)
-    rows = np.zeros(1, np.int64)
-    fields = np.array([F_LENGTH, F_INTERVAL, F_RAMP, F_VALID], np.int64)
-    rasterise_cells(bands[0], counts[0], 1, 4, 4, 0.5, fields, np.empty((4, 1, 4)), rows)

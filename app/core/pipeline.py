@@ -383,9 +383,9 @@ class DepthPipeline:
         compilation on a first run, the largest part of the pipeline's), the depth
         from the line intervals (about 1.3 s; it runs only where lines move too little),
         the whole-column intervals (about 3.7 s; only for patterns whose lines are
-        off their nominal centres), the arcs' intervals (about 2.3 s;
+        off their nominal centres), the arcs' intervals (about 3.5 s;
         :func:`lightflow.app.core.arcs.warm_up`) and the second reading of the flows and the
-        interval depth's own kernels (about 4 s; :func:`warm_up_kernels`,
+        interval depth's own kernels (about 2.5 s; :func:`warm_up_kernels`,
         :func:`lightflow.app.core.flow.warm_up_reread`).
         """
         if self._overlap is not None:
@@ -975,7 +975,8 @@ def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.nda
 
 
 def warm_up_kernels() -> None:
-    """Compile (or load) the kernels of :meth:`DepthPipeline._arc_intervals` and
+    """Compile (or load) the kernels of :meth:`DepthPipeline._arc_intervals` (with the
+    rasterising of the grid rows the arcs change) and
     :meth:`DepthPipeline._depth_from_intervals`, with a frame's argument types.
 
     A test image of straight stripes reaches neither (no interval changes, no lines that
@@ -986,6 +987,9 @@ def warm_up_kernels() -> None:
     grids = np.zeros((2, 4, 4, 4))
     rows = np.array([0, 2], np.int64)
     old = grids.take(rows, axis=2)
+    bands = np.full((1, 2, bd.N_FIELDS), np.nan)
+    fields = np.array(bd.GRID_FIELDS, np.int64)
+    bd.rasterise_cells(bands, np.zeros(1, np.int64), 1, 4, 4, 0.5, fields, grids[0], rows[:1])
     ratio = np.empty((2, 2, 4))
     changed = np.empty((2, 4), np.bool_)
     _compare_rows(old, grids, rows, ratio, changed)
