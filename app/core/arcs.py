@@ -190,7 +190,7 @@ def _column(rot, shift, kmat, lens, px, py, pz):
     return kmat[0, 0] * xd + kmat[0, 1] * yd + kmat[0, 2]
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _ray(rays, r, x):
     """Normalised ray (x/z, y/z) at fractional column ``x`` of measured row ``r``."""
     w = rays.shape[1]
@@ -291,7 +291,7 @@ def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, 
     return pitch / du if du > 0.0 else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _depth_around(depth, i, ca, cb, off, stride, reach):
     """Depth of the cell nearest to grid row ``i``'s columns ``ca .. cb`` (camera px) that
     has one, within ``reach`` cells in any direction; of equals, the one nearest to
@@ -443,7 +443,7 @@ def _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0, rot, shift, kma
     return True
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _rescue(bands, r, b, arc, rescued):
     """Band ``b`` of measured row ``r`` (limb or steep) becomes valid with the interval
     ``arc`` where its support leaves a gap (as the detector's test, whose interval was
@@ -455,7 +455,7 @@ def _rescue(bands, r, b, arc, rescued):
         rescued[r] += 1
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _row_changes(ratio, counts, r):
     """Whether a band of row ``r`` has its interval changed by at least half of
     :data:`MIN_CHANGE` (:func:`_changes_near` finds one near a column only then)."""
@@ -467,7 +467,7 @@ def _row_changes(ratio, counts, r):
     return False
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _changes_near(ratio, counts, bands, r, c, reach, dev):
     """Whether a band of row ``r`` within ``reach`` of column ``c`` has its interval changed
     by at least half of :data:`MIN_CHANGE`, the same way as ``dev`` (either way when ``dev``
