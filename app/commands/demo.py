@@ -49,8 +49,8 @@ and compiles the pipeline's and the renderer's kernels (numba), in this
 process and a helper process side by side; all of it is cached under
 $XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
 the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches,
-load average 1.4-2.0): first depth picture after 16-17 s (32 s of CPU
-time, more under load) and the whole demo in 54 s.  Rendering is the bound
+load average 1.3-2.2): first depth picture after 21-22 s (42-44 s of CPU
+time, more under load) and the whole demo in 58-60 s.  Rendering is the bound
 while streaming (about 1.5 s of CPU time per frame); the first and last lines
 give the times and the CPU time of the run."""
 
