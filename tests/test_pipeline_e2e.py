@@ -565,3 +565,44 @@ def test_photo_block_keeps_its_bands_where_lines_stand_upright():
     slanted = _photo_page(0.1, rng)
     for a, b in zip(_photo_bands(slanted, 13), _photo_bands(slanted, 81), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_frame_after_the_warm_up_compiles_nothing(rig2):
+    """:meth:`DepthPipeline.warm_up` compiles (or loads) every kernel a frame reaches, so
+    that no frame stalls on numba's compiler: the demo's first frames (two boards before
+    a wall: overlapping bands, the arcs' intervals, the second reading, the depth from
+    the line intervals) compile nothing more.  Counted with numba's compile events (run
+    in a fresh process, this covers every kernel; after other tests, what they left).
+    """
+    import argparse
+    from dataclasses import replace
+
+    from numba.core import event
+
+    from lightflow.app.commands.demo import simulated_crosstalk
+    from lightflow.app.options import pipeline_config
+
+    args = argparse.Namespace(stride=STRIDE, smoothing=None, crosstalk=None)
+    config = replace(pipeline_config(args), crosstalk="auto")
+    with SyntheticCamera(rig2, "boards-wall", frames=2, seed=0) as cam:
+        frames = list(cam.frames())
+    # the demo's rig: the simulated camera's crosstalk per pattern
+    pipe = DepthPipeline(rig2.with_crosstalk(simulated_crosstalk(rig2)), config)
+    pipe.warm_up()
+    compiled = []
+
+    class Listener(event.Listener):
+        def on_start(self, ev) -> None:
+            compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+
+        def on_end(self, ev) -> None:
+            pass
+
+    listener = Listener()
+    event.register("numba:compile", listener)
+    try:
+        for frame in frames:
+            pipe.process(frame)
+    finally:
+        event.unregister("numba:compile", listener)
+    assert compiled == []

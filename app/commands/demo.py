@@ -51,8 +51,8 @@ and compiles the pipeline's and the renderer's kernels (numba), in this
 process and a helper process side by side; all of it is cached under
 $XDG_CACHE_HOME/lightflow and each step says what it is doing.  Measured with
 the defaults on a shared 2-core machine (tests/bench_demo.py, empty caches,
-load average 1.4-2.0): first depth picture after 16-17 s (32 s of CPU
-time, more under load) and the whole demo in 54 s.  Rendering is the bound
+load average 1.3-2.2): first depth picture after 21-22 s (42-44 s of CPU
+time, more under load) and the whole demo in 58-60 s.  Rendering is the bound
 while streaming (about 1.5 s of CPU time per frame); the first and last lines
 give the times and the CPU time of the run."""
 
@@ -270,10 +270,12 @@ def cpu_seconds() -> float:
 class Helper:
     """The helper process: half of the band detector's kernels, the tables, the renderer.
 
-    Last, the kernels of the arcs' line intervals, of the depth from the line intervals and
-    of overlapping bands (:func:`lightflow.app.core.arcs.warm_up`,
-    :func:`lightflow.app.core.intervals.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
-    which this process would otherwise compile at the end of the pipeline's warm-up.
+    Last, the kernels of the arcs' line intervals and of overlapping bands
+    (:func:`lightflow.app.core.arcs.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
+    which this process would otherwise compile at the end of the pipeline's warm-up.  This
+    process compiles meanwhile the kernels of the depth from the line intervals
+    (:func:`lightflow.app.core.intervals.warm_up`) and of the grid rows the arcs change
+    (:func:`lightflow.app.core.pipeline.warm_up_kernels`): both end at about the same time.
 
     It compiles the detector's ``sliding_mid`` while this process compiles
     ``bands_in_row`` (numba's on-disk cache hands each to the other process),
@@ -310,9 +312,8 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
-        "from lightflow.app.core import arcs, intervals, overlap\n"
+        "from lightflow.app.core import arcs, overlap\n"
         "arcs.warm_up()\n"
-        "intervals.warm_up()\n"
         "overlap.warm_up()\n"
         "print('overlap', flush=True)\n"
     )
@@ -516,6 +517,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from lightflow.app.core import bands as bd
+    from lightflow.app.core import intervals
     from lightflow.app.core.depth_model import load_or_build_lut
     from lightflow.app.core.flow import warm_up_reread
     from lightflow.app.core.pipeline import DepthPipeline, warm_up_kernels
@@ -629,9 +631,11 @@ def run(args: argparse.Namespace) -> int:
                 pipeline = DepthPipeline(rig, config, lut=lut)
                 pipeline.warm_up(optional=helper is None)
                 if helper is not None:
-                    # the second reading's kernels here: the helper has more left to compile
+                    # the second reading's and the interval depth's kernels here: the helper
+                    # has more left to compile
                     warm_up_reread()
                     warm_up_kernels()
+                    intervals.warm_up()
                     helper.overlap.wait()  # compiled there meanwhile: loaded from the cache
                     pipeline.warm_up_optional()
             finally:

@@ -62,6 +62,7 @@ from .bands import (
     F_VALID,
 )
 from .geometry import lens_coefficients, lens_distort, lens_distort_derivative, undistort_pixels
+from .kernel_options import INTERNAL, NO_CFUNC
 from .rig import Rig
 from .snapping import column_direction
 from .threads import run_rows
@@ -179,7 +180,7 @@ class ArcIntervals:
         return int(changed.sum()), int(rescued.sum()), np.unique(touched)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _column(rot, shift, kmat, lens, px, py, pz):
     """Projector column lighting the camera-frame point ``(px, py, pz)``."""
     qx = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + shift[0]
@@ -189,7 +190,7 @@ def _column(rot, shift, kmat, lens, px, py, pz):
     return kmat[0, 0] * xd + kmat[0, 1] * yd + kmat[0, 2]
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _ray(rays, r, x):
     """Normalised ray (x/z, y/z) at fractional column ``x`` of measured row ``r``."""
     w = rays.shape[1]
@@ -202,7 +203,7 @@ def _ray(rays, r, x):
 # The arcs' kernels allocate nothing: compiled without numba's reference counting
 # (``_nrt=False``), whose atomic counts on the rig's and the bands' arrays at every call
 # (both threads on the same arrays) took a third of their time
-@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False, **INTERNAL)
 def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     """Depth along the ray ``(rx, ry, 1)`` whose point the projector lights at column
     ``target`` (near ``z``); NaN when there is none near."""
@@ -246,7 +247,7 @@ def _depth_on_ray(rot, shift, kmat, lens, distorted, rx, ry, target, z):
     return np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False, **INTERNAL)
 def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, kmat, lens,
                   distorted, sgn, pitch):  # fmt: skip
     """Interval at ``c0`` (depth ``z0``) from the arc through it and the lines at ``c1``,
@@ -290,7 +291,7 @@ def _arc_interval(rays, cam_k, cam_lens, r, c0, z0, c1, n1, c2, n2, rot, shift, 
     return pitch / du if du > 0.0 else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _depth_around(depth, i, ca, cb, off, stride, reach):
     """Depth of the cell nearest to grid row ``i``'s columns ``ca .. cb`` (camera px) that
     has one, within ``reach`` cells in any direction; of equals, the one nearest to
@@ -321,7 +322,7 @@ def _depth_around(depth, i, ca, cb, off, stride, reach):
     return z
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False, **NO_CFUNC)
 def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, rot, shift, kmat,
               lens, distorted, sgn, pitch, itol, ratio, rescued, second, r0, r1):  # fmt: skip
     """Measured rows ``r0 .. r1`` of one pattern: each band's arc interval over its secant in
@@ -421,7 +422,7 @@ def _arc_rows(bands, counts, nominal, rays, cam_k, cam_lens, depth, k, stride, r
                     _rescue(bands, r, b, arc, rescued)
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0, rot, shift, kmat, lens,
                  distorted, sgn, pitch):  # fmt: skip
     """Whether the arcs through band ``b``'s line and its next two on either side both
@@ -442,7 +443,7 @@ def _sides_agree(bands, n, r, b, arc, rays, cam_k, cam_lens, z0, rot, shift, kma
     return True
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _rescue(bands, r, b, arc, rescued):
     """Band ``b`` of measured row ``r`` (limb or steep) becomes valid with the interval
     ``arc`` where its support leaves a gap (as the detector's test, whose interval was
@@ -454,7 +455,7 @@ def _rescue(bands, r, b, arc, rescued):
         rescued[r] += 1
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _row_changes(ratio, counts, r):
     """Whether a band of row ``r`` has its interval changed by at least half of
     :data:`MIN_CHANGE` (:func:`_changes_near` finds one near a column only then)."""
@@ -466,7 +467,7 @@ def _row_changes(ratio, counts, r):
     return False
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _changes_near(ratio, counts, bands, r, c, reach, dev):
     """Whether a band of row ``r`` within ``reach`` of column ``c`` has its interval changed
     by at least half of :data:`MIN_CHANGE`, the same way as ``dev`` (either way when ``dev``
@@ -482,7 +483,7 @@ def _changes_near(ratio, counts, bands, r, c, reach, dev):
     return False
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)
+@nb.njit(cache=True, error_model="numpy", nogil=True, _nrt=False, **NO_CFUNC)
 def _apply_rows(bands, counts, ratio, changed, r0, r1):
     """Measured rows ``r0 .. r1``: scale the intervals whose arc changes them by at least
     :data:`MIN_CHANGE` where a band beside, above or below changes the same way."""
@@ -505,13 +506,14 @@ def _apply_rows(bands, counts, ratio, changed, r0, r1):
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the arcs' kernels, and the rasterising of
-    listed grid rows they use, on two bands of an example rig's row.
+    """Compile (or load from numba's cache) the arcs' kernels on two bands of an example
+    rig's row (the rasterising of the grid rows they change:
+    :func:`lightflow.app.core.pipeline.warm_up_kernels`).
 
     The demo's helper process runs this while the main one compiles the rest of the
-    pipeline (about 2.3 s of CPU on a cold start).
+    pipeline (about 3.5 s of CPU on a cold start).
     """
-    from .bands import N_FIELDS, rasterise_cells
+    from .bands import N_FIELDS
     from .rig import resolve_rig
 
     rig = resolve_rig("two-projector")
@@ -527,6 +529,3 @@ def warm_up() -> None:
         bands[p, 0, :5, F_RAMP] = 1.0
     counts = np.full((2, 1), 5, np.int64)
     arcs.correct(bands, counts, np.full((2, 1, 8), np.nan), np.full((1, 400), 0.8), 1, 4, 0.25)
-    rows = np.zeros(1, np.int64)
-    fields = np.array([F_LENGTH, F_INTERVAL, F_RAMP, F_VALID], np.int64)
-    rasterise_cells(bands[0], counts[0], 1, 4, 4, 0.5, fields, np.empty((4, 1, 4)), rows)

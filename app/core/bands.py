@@ -46,6 +46,7 @@ import numba as nb
 import numpy as np
 
 from .errors import ConfigError
+from .kernel_options import INTERNAL, NO_CFUNC
 from .rig import MAX_CROSSTALK
 from .threads import run_rows
 
@@ -293,7 +294,7 @@ def _fill_rows(flat, rows, kernel, min_level, out, i0, i1):
     _close_rows(cv2.dilate(flat[lo:hi], kernel), lo, flat, sub, r, np.int32(level), out)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _close_rows(dilated, lo, flat, rows, r, level, out):
     """``out[y]`` for each image row ``y`` in ``rows``: ``flat[y]`` with its deep dips
     replaced by the closing, as :func:`_deep_dips` selects them.
@@ -337,7 +338,7 @@ def _close_rows(dilated, lo, flat, rows, r, level, out):
             o[j] = (closed[j] & near) | (row[j] & (near ^ ones))
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _walk_left(x, j, level):
     # from j (x[j] >= level) left to the last sample at or above level
     while j > 0 and x[j - 1] >= level:
@@ -345,7 +346,7 @@ def _walk_left(x, j, level):
     return j
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _walk_right(x, j, level):
     n = x.shape[0]
     while j < n - 1 and x[j + 1] >= level:
@@ -353,7 +354,7 @@ def _walk_right(x, j, level):
     return j
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _at_left(x, j, level):
     # the crossing below a walk's end j, linearly interpolated
     if j == 0:
@@ -365,7 +366,7 @@ def _at_left(x, j, level):
     return (j - 1) + (level - a) / (b - a)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _at_right(x, j, level):
     n = x.shape[0]
     if j == n - 1:
@@ -377,7 +378,7 @@ def _at_right(x, j, level):
     return j + (a - level) / (a - b)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def sliding_mid(x, win, out):
     """``out[0]``: (max + min) / 2, ``out[1]``: min, over a centred window of about ``win``.
 
@@ -448,7 +449,7 @@ def sliding_mid(x, win, out):
             mins[t] = mn
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def _row_signals(img, y0, y1, weights, out):
     """Average rows ``y0..y1`` (clamped) and unmix: ``out[p] = weights[p] . rgb``.
 
@@ -522,7 +523,7 @@ def row_signals(img: np.ndarray, y: int, weights: np.ndarray) -> np.ndarray:
 # The per-gap and per-band kernels of the detector allocate nothing: they are compiled
 # without numba's reference counting (``_nrt=False``), whose atomic counts on the row's and
 # the bands' arrays at every call cost about a tenth of the detector's time.
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _gap_level(x, g0, g1):
     """Background of a gap (mean of its middle half) and how V-shaped that middle is.
 
@@ -550,7 +551,7 @@ def _gap_level(x, g0, g1):
     return level, outer / (2 * t) - inner / (b - t - (a + t) + 1)
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _near_level(x, edge, bound):
     """Mean of the three samples from ``edge`` outwards, none beyond sample ``bound``.
 
@@ -569,7 +570,7 @@ def _near_level(x, edge, bound):
     return total / 3.0
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _gap_floor(x, g0, g1):
     """Lowest mean of five neighbouring samples in gap ``g0..g1`` (its mean if shorter).
 
@@ -597,13 +598,13 @@ def _gap_floor(x, g0, g1):
 ERF_20_50 = 0.8416
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _erfc_integral(u):
     """An antiderivative of ``erfc``: ``u erfc(u) - exp(-u^2) / sqrt(pi)``."""
     return u * math.erfc(u) - math.exp(-u * u) / math.sqrt(math.pi)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _edge_sum(h, e, sigma, lo, hi, sign):
     """Sum over the samples ``lo + 0.5 .. hi - 0.5`` of an erf edge of height ``h`` at
     ``e`` (half height), falling away from it on the side ``sign`` (+1: right).
@@ -645,7 +646,7 @@ _A2_STEPS = 64
 _A2_TABLE = _antiderivative2_exact(np.linspace(-_A2_Z, _A2_Z, int(2 * _A2_Z * _A2_STEPS) + 1))
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _ramp_antiderivative2(z):
     """:func:`_antiderivative2_exact` at ``z``, from its table."""
     if z <= -_A2_Z:
@@ -658,7 +659,7 @@ def _ramp_antiderivative2(z):
     return _A2_TABLE[i] + f * (_A2_TABLE[i + 1] - _A2_TABLE[i])
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _ramp_edge_sum(h, e, w, sigma, lo, hi, sign):
     """Sum over the samples ``lo + 0.5 .. hi - 0.5`` of a band edge of height ``h`` with
     its half height at ``e``, falling away from it on the side ``sign`` (+1: right).
@@ -682,7 +683,7 @@ def _ramp_edge_sum(h, e, w, sigma, lo, hi, sign):
                     + _ramp_antiderivative2((t0 - half) / sigma))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _tails(g0, g1, edges, left, right):
     """Mean over the middle half of gap ``g0..g1`` (as :func:`_gap_level`) of the tails
     of band ``left``'s right edge and band ``right``'s left edge.
@@ -730,7 +731,7 @@ _S_PEAK_AT, _S_TOP, _S_LEVEL1, _S_LEFT1, _S_RIGHT1, _S_MID, _S_BG, _S_X20L, _S_X
 _N_SHAPE = 10
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
     """Measure the shape of band ``k`` (samples ``a..b`` above the mid-level) of row ``x``
     into ``out[k]``: centre, length, half-height crossings, height and ramp.
@@ -831,7 +832,7 @@ def _band_shape(x, k, a, b, bl, br, cl, cr, min_contrast, out, shape):
     return True
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, inner_l, inner_r, sym_tol, out, shape):
     """Set ``F_VALID`` of band ``k``, measured by :func:`_band_shape`: valid, or the first
     reason it is not (``BAND_*``).
@@ -893,7 +894,7 @@ def _band_checks(x, thr, k, vl, vr, cl, cr, tl, tr, inner_l, inner_r, sym_tol, o
     out[k, F_VALID] = code
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _gap(seg_a, seg_b, ns, n, g):
     """First and last sample of gap ``g`` (left of segment ``g``; the outer two reach
     24 samples past the outermost segments)."""
@@ -909,7 +910,7 @@ def _gap(seg_a, seg_b, ns, n, g):
 _N_WORK = _W_EDGES + 6
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
     """Detect bands in one row signal; fills ``out`` (max_bands, N_FIELDS); returns count.
 
@@ -1232,7 +1233,7 @@ def bands_in_row(x, thr, min_contrast, sym_tol, min_gap, itol, edge, out):
     return ns
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _trend_interval(out, ns, kp, k, kn, itol):
     """Band ``k``'s interval where its spacings change as a smooth trend; NaN at a step.
 
@@ -1281,7 +1282,7 @@ def _trend_interval(out, ns, kp, k, kn, itol):
     return acc / n if n else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _density_at(x0, x1, x2, x3, x):
     """Lines per camera px at ``x``: the quadratic through each spacing's reciprocal at
     its middle, of the four consecutive line centres ``x0 < x1 < x2 < x3``."""
@@ -1296,7 +1297,7 @@ def _density_at(x0, x1, x2, x3, x):
             + r2 * (x - m0) * (x - m1) / ((m2 - m0) * (m2 - m1)))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _side_interval(out, ns, k, k1, k2, itol):
     """Band ``k``'s interval from two neighbours on one side (``k1`` next, ``k2`` beyond).
 
@@ -1319,7 +1320,7 @@ def _side_interval(out, ns, k, k1, k2, itol):
     return interval
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def nearest_partners(bands, counts, i, o, reach, out):
     """Per band of row ``i``: the band of row ``o`` with the nearest centre, or -1.
 
@@ -1353,7 +1354,7 @@ def nearest_partners(bands, counts, i, o, reach, out):
             out[k] = best
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _slant_row(bands, counts, row_y, i, o, partner):
     """Slant (columns per row) of each band of row ``i`` from its partner in row ``o``.
 
@@ -1368,7 +1369,7 @@ def _slant_row(bands, counts, row_y, i, o, partner):
             if q >= 0 else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def band_slants(bands, counts, row_y):
     """Slants of every band, each row paired with the measured row above (below for the first).
 
@@ -1412,7 +1413,7 @@ def detect_bands(img, weights, row_y, wins, scale, params, edges, bands, counts,
              edges, bands, counts, group)  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _detect_groups(img, weights, row_y, wins, scale, params, edges, bands, counts, group, g0,
                    g1):  # fmt: skip
     """:func:`detect_bands` on the row groups ``g0 .. g1``."""
@@ -1449,7 +1450,7 @@ def rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, rows=None)
                  np.asarray(rows, np.int64))  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, c0, c1):
     """:func:`rasterise_cells` on the rows of cells ``c0 .. c1``."""
     tbuf = np.empty(gw)
@@ -1457,7 +1458,7 @@ def _rasterise_cells(bands, counts, k, stride, gw, reach, fields, out, c0, c1):
         _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbuf)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _rasterise_listed(bands, counts, k, stride, gw, reach, fields, out, rows, c0, c1):
     """:func:`rasterise_cells` on the rows of cells ``rows[c0:c1]``."""
     tbuf = np.empty(gw)
@@ -1465,7 +1466,7 @@ def _rasterise_listed(bands, counts, k, stride, gw, reach, fields, out, rows, c0
         _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, rows[q], tbuf)
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbuf):
     """Row of cells ``i`` of :func:`rasterise_cells` (``tbuf``: scratch of ``gw``)."""
     nf = fields.shape[0]
@@ -1478,7 +1479,9 @@ def _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbu
     acc = np.zeros((nf, gw))
     n = np.zeros(gw, np.int64)
     for q in range(k):
-        _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, 0, tbuf)
+        # np.int64(0), not 0: a literal would compile _rasterise_row a second time
+        _rasterise_row(bands, counts, i * k + q, stride, gw, reach, fields, buf, np.int64(0),
+                       tbuf)  # fmt: skip
         for j in range(gw):
             if not np.isnan(buf[0, 0, j]):
                 n[j] += 1
@@ -1489,7 +1492,7 @@ def _rasterise_cell_row(bands, counts, k, stride, gw, reach, fields, out, i, tbu
             out[f, i, j] = acc[f, j] / n[j] if n[j] else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def pack_bands(bands, counts, row_y, rows, starts, ends, valid):
     """Copy the measured bands (those with an extent) into flat arrays; returns the count."""
     m = 0
@@ -1505,7 +1508,7 @@ def pack_bands(bands, counts, row_y, rows, starts, ends, valid):
     return m
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _extend_runs(maps, i, gw, stride, reach, interval_field):
     """Extrapolate each run of a grid row linearly past its ends.
 
@@ -1544,7 +1547,7 @@ def _extend_runs(maps, i, gw, stride, reach, interval_field):
         j = b + 1 + int(reach * maps[interval_field, i, b] / stride) + 1
 
 
-@nb.njit(cache=True, error_model="numpy", _nrt=False)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, **INTERNAL)
 def _rasterise_row(bands, counts, r, stride, gw, reach, fields, maps, i, t):
     """Interpolate the band fields of measured row ``r`` onto the grid columns.
 
@@ -1600,7 +1603,7 @@ LEAK_REACH_RAMPS = 4.0
 LEAK_MIN_SPAN = 0.6
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def _leak_ratios(img, target, source, row_y, win_t, win_s, out):
     """Per source band on the given rows: the slope of the target channel against the
     source channel, by least squares over the samples around the band that no target

@@ -24,6 +24,7 @@ from .bands import (
     F_VALID,
     value_counts,
 )
+from .kernel_options import INTERNAL, NO_CFUNC
 from .threads import run_rows
 
 DEPTH = 0
@@ -66,7 +67,7 @@ CAUSE_COLOURS = ((0, 200, 0), (40, 40, 40), (120, 120, 200), (230, 120, 30), (20
 
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _band_code_cause(code):
     if code == BAND_FAINT:
         return FAINT
@@ -100,7 +101,7 @@ def band_causes(bands, counts, k, stride, gw, reach, out):
     run_rows(_band_causes, out.shape[0], bands, counts, k, stride, gw, reach, out)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _band_causes(bands, counts, k, stride, gw, reach, out, i0, i1):
     """:func:`band_causes` on the grid rows ``i0 .. i1``."""
     off = 0.5 * (stride - 1)
@@ -164,7 +165,7 @@ def merge_causes(per_pattern, intervals, why, log_ratio, depth, out):
     run_rows(_merge_causes, out.shape[0], per_pattern, intervals, why, log_ratio, depth, out)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _merge_causes(per_pattern, intervals, why, log_ratio, depth, out, i0, i1):
     """:func:`merge_causes` on the grid rows ``i0 .. i1``."""
     gw = out.shape[1]
@@ -185,7 +186,7 @@ def _merge_causes(per_pattern, intervals, why, log_ratio, depth, out, i0, i1):
             out[i, j] = c
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _support(bands, r, q):
     """First and last column of band ``q`` of row ``r``'s support: its extent and two
     ramps on each side."""
@@ -193,7 +194,7 @@ def _support(bands, r, q):
     return bands[r, q, F_START] - 2.0 * ramp, bands[r, q, F_END] + 2.0 * ramp
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _distance(a, b, x):
     """Distance from column ``x`` to the support ``a .. b`` (0 inside)."""
     if x < a:

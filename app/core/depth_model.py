@@ -105,7 +105,7 @@ def _proj_u_du(pp, x, y, z):
     return u, du, pz
 
 
-@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _h_of_z(projs, pats, single, x, y, z):
     """h_p(z) = log|dk1/dz| - log|dk2/dz|; NaN where a projector cannot see the point."""
     u1, du1, pz1 = _proj_u_du(projs[int(pats[0, 0])], x, y, z)

@@ -21,6 +21,7 @@ import numpy as np
 from . import causes as cz
 from .depth_model import pattern_params, pitch_at
 from .errors import ConfigError
+from .kernel_options import NO_CFUNC
 from .patterns import local_pitch
 from .profile_model import (
     L_AXIS,
@@ -212,7 +213,7 @@ BLUR_REL_ERROR = 0.1
 CALIBRATED_BLUR_REL_ERROR = 0.05
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _sweeps(
     grids, intervals, kinds, steps, widths, line_px, blur, single, u_lo, u_step, u_of,
     inv, inv_m, s_lo, s_step, w_step, m_step, r_step, m_max, lo_factor, lo_margin,
@@ -353,7 +354,7 @@ REREAD_TILE = (8, 16)
 WINDOW_CALL_CELLS = 4000.0
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _pack(sweeps, banded, interval_ratio, single, stack, busy, i0, i1):
     """Fill the channels of ``stack`` (0 where the sweeps or the interval ratio are invalid).
 
@@ -397,7 +398,7 @@ def _pack(sweeps, banded, interval_ratio, single, stack, busy, i0, i1):
         busy[i] = any_data
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _decide(
     sweeps, blurred, moving_at, pitch, interval_ratio, single, still_depth, outlier, share,
     sens, intervals, cells_per_kernel, log_ratio, flows, lr_var, lr_sys, why, j0, j1, i0, i1,
@@ -471,7 +472,7 @@ def _decide(
             lr_sys[i, j] = 0.0
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _take_again(first_lr, first_flows, first_var, first_sys, first_why, shift, grow, added,
                 has_added, sweeps, log_ratio, flows, lr_var, lr_sys, why, swept, j0, j1, i0,
                 i1):  # fmt: skip
@@ -503,7 +504,7 @@ def _take_again(first_lr, first_flows, first_var, first_sys, first_why, shift, g
             why[i, j] = first_why[i, j]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **NO_CFUNC)
 def _dirty_tiles(todo, reach, tile_rows, tile_cols, tiles):
     """``tiles``: the tiles of ``tile_rows`` x ``tile_cols`` cells with a cell within ``reach``
     (rows and columns) of a ``todo`` one."""
@@ -529,7 +530,7 @@ def _dirty_tiles(todo, reach, tile_rows, tile_cols, tiles):
                 tiles[ti, tj] |= near[i, tj]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **NO_CFUNC)
 def _window_cost(r0, r1, c0, c1, reach, gh, gw):
     """What deciding cells ``r0 .. r1`` x ``c0 .. c1`` again costs, in cells blurred: the
     cells its blur reads (:func:`_gauss_window`), half the cells decided, and its calls."""
@@ -538,7 +539,7 @@ def _window_cost(r0, r1, c0, c1, reach, gh, gw):
     return rows * cols + 0.5 * (r1 - r0) * (c1 - c0) + WINDOW_CALL_CELLS
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **NO_CFUNC)
 def _merge_windows(win, reach, gh, gw):
     """The windows ``win`` (``(n, 4)``: ``r0, r1, c0, c1``, disjoint) with pairs joined into
     their bounding box while that costs less (:func:`_window_cost`) and meets no other
@@ -576,7 +577,7 @@ def _merge_windows(win, reach, gh, gw):
         alive[bj] = False
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _screen(raw, depth, slope, lr_var, lr_sys, noise_gain, floor_var, max_rel_std, why, kept,
             variance, i0, i1):  # fmt: skip
     """:meth:`FlowMaps.screen` on grid rows ``i0 .. i1`` (float32 throughout, as numpy
@@ -1230,7 +1231,7 @@ def _masked_smooth(values, variance, keep, sigma, fill_fraction):
 # pixel gets the same float32 operations, so the values are those of the numpy code.
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _outlier_inputs(values, variance, has_var, mask, masked, ones):
     """``mask``: ``values`` (and ``variance``) finite; ``masked``: ``values`` there, else 0;
     ``ones``: ``mask`` as 1.0 / 0.0."""
@@ -1243,7 +1244,7 @@ def _outlier_inputs(values, variance, has_var, mask, masked, ones):
             ones[i, j] = np.float32(1.0) if ok else np.float32(0.0)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _residuals(values, mask, num, den, resid):
     """``resid``: ``|values - num / den|`` on ``mask``, NaN elsewhere."""
     h, w = values.shape
@@ -1252,7 +1253,7 @@ def _residuals(values, mask, num, den, resid):
             resid[i, j] = abs(values[i, j] - num[i, j] / den[i, j]) if mask[i, j] else np.nan
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _keep_inliers(resid, limit, keep):
     """``keep``: ``resid <= limit`` (float32; false where ``resid`` is NaN)."""
     h, w = resid.shape
@@ -1261,7 +1262,7 @@ def _keep_inliers(resid, limit, keep):
             keep[i, j] = resid[i, j] <= limit
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _smooth_inputs(values, variance, has_var, keep, ones, wt, masked, var_masked):
     """On ``keep``, else 0: ``ones`` 1.0; ``masked`` the ``values``; with ``has_var``, ``wt``
     the inverse ``variance``, ``masked`` the values times it and ``var_masked`` the variance
@@ -1281,7 +1282,7 @@ def _smooth_inputs(values, variance, has_var, keep, ones, wt, masked, var_masked
                 masked[i, j] = values[i, j] if k else zero
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _smooth_outputs(den, wden, num, var_num, keep, enclosed, has_var, holes, fill_fraction):
     """In place: ``num`` over ``wden`` (with ``has_var``, and ``var_num`` over ``den``) or
     over ``den``, where the pixel is kept or filled, else NaN (also in ``den``, ``wden``)."""

@@ -37,6 +37,7 @@ import numpy as np
 
 from .depth_model import DepthRange
 from .geometry import project_to_projector, undistort_pixels
+from .kernel_options import INTERNAL, NO_CFUNC
 from .rig import Rig
 from .threads import run_rows
 
@@ -263,7 +264,7 @@ class IntervalModel:
         return out
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _dense_inputs(dense, values, weights, i0, i1):
     """``values``: the dense intervals in float32, 0 where not finite; ``weights``: 1 where
     they are positive, else 0 (grid rows ``i0 .. i1``)."""
@@ -276,7 +277,7 @@ def _dense_inputs(dense, values, weights, i0, i1):
             weights[i, j] = np.float32(1.0) if finite and x > 0.0 else np.float32(0.0)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _bends(dense, b, h, curved, out, i0, i1):
     """:meth:`IntervalModel._curved`'s test on grid rows ``i0 .. i1``: the mean of ``b``
     ``h`` cells either side against ``b`` (float32, as numpy computed it)."""
@@ -306,7 +307,7 @@ def _local_mean(values: np.ndarray, weights: np.ndarray,
         return cv2.GaussianBlur(values, (0, 0), SMOOTH_CELLS) / blurred_weights
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _at(tab, p, k, f, r0, fr, c0, fc):
     """Table ``tab[p]`` at depth index ``k + f`` and coarse position ``(r0 + fr, c0 + fc)``."""
     acc = 0.0
@@ -319,7 +320,7 @@ def _at(tab, p, k, f, r0, fr, c0, fc):
     return acc
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always", **NO_CFUNC)
 def _other_du(pitch_d, b_d, a_d, c_d, a_s, c_s):
     """Pattern ``s``'s ``du/dx`` where pattern ``d``'s measured interval ``b_d`` fixes
     ``dz/dx`` (its ``du/dx`` taken with the sign it has at a fixed depth, ``a_d``)."""
@@ -327,7 +328,7 @@ def _other_du(pitch_d, b_d, a_d, c_d, a_s, c_s):
     return a_s + g * c_s
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **INTERNAL)
 def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
     """The sparse pattern ``s``'s ``du/dx`` predicted from the dense ``d``'s interval
     ``b_dense`` at depth index ``t``; 0 where there is no prediction."""
@@ -348,7 +349,7 @@ def _predict(a, c, pitch, b_dense, d, s, t, r0, fr, c0, fc):
     return du_s
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _disagreement(intervals, depth, a, c, pitch, inv_z0, inv_z_step, coarse, denser, depth_tol,
                   tol, out, have, i0, i1):  # fmt: skip
     """``out[s]``: log(measured / predicted) interval of the sparse pattern ``s`` of each
@@ -421,7 +422,7 @@ MAX_SENSITIVITY = 5.0
 SCAN = 3
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _interval_residual(a, c, pitch, b0, b1, k, r0, fr, c0, fc):
     """Pattern 1's interval predicted at depth index ``k`` over the measured one, minus 1.
 
@@ -439,7 +440,7 @@ def _interval_residual(a, c, pitch, b0, b1, k, r0, fr, c0, fc):
     return abs(_other_du(pitch[0], b0, a0, k0, a1, k1)) * b1 / pitch[1] - 1.0
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _interval_depth(intervals, where, a, c, pitch, inv_z0, inv_z_step, coarse, z_out, sens_out,
                     i0, i1):  # fmt: skip
     """:meth:`IntervalModel.depth` on grid rows ``i0 .. i1``."""

@@ -159,7 +159,7 @@ def _sinc(x):
     return math.sin(math.pi * x) / (math.pi * x)
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def chirp_position(t, tc, g):
     """Position at which lines ``B (1 + g (t - tc))`` apart are ``B`` apart.
 
@@ -171,7 +171,7 @@ def chirp_position(t, tc, g):
     return tc + math.log1p(g * (t - tc)) / g
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     """Least-squares Fourier series of period ``B`` over samples ``x[lo:hi]``.
 
@@ -309,7 +309,7 @@ def harmonic_fit(x, lo, hi, B, M, coef, var_c, chirp=0.0):
     return math.sqrt(rss / max(N - P, 1))
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def transfer(m, B, w, sigma):
     """``K_m``: the line box, the pixel box and the blur at harmonic ``m / B``."""
     return _sinc(m * w / B) * _sinc(m / B) * math.exp(-2.0 * (math.pi * sigma * m / B) ** 2)
@@ -401,7 +401,7 @@ def _pulse_fit(coef, M, B, K, hfx):
     return out
 
 
-@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def measure_stretch(x, lo, hi, B, chirp, w, sigma, bg, bg_err, prior, centre, params, out):
     """Sweep ``L`` of the bands in ``x[lo:hi]``, a stretch of one row with lines ``B`` apart.
 
@@ -671,6 +671,8 @@ RUN_PIECE_BANDS = 5
 #: (fresh rig 23's slow board: -9.1, -4.7 and -1.4 % in pieces of 8, 5 and 3 bands; chosen
 #: on fresh rigs 13-24, the tuning rigs have no such runs)
 FLOORLESS_PIECE_BANDS = 3
+#: a ``piece`` of :func:`_find_runs` that cuts no run
+WHOLE_RUN = 1 << 30
 #: a piece keeps its own sweep where it differs from its run's by more than this many of
 #: its predicted standard deviations (elsewhere the run's, from more periods, is better)
 PIECE_SIGMAS = 2.0
@@ -715,7 +717,7 @@ TIGHT_GAP_SIGMAS = 3.0
 
 
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
-def _find_runs(bands, counts, min_bands, runs, piece=1 << 30):
+def _find_runs(bands, counts, min_bands, runs, piece):
     """Runs of at least ``min_bands`` neighbouring overlap-rejected bands with centres, runs
     of ``2 piece`` or more cut into pieces of ``piece`` to ``2 piece - 1`` bands (the sweep
     and the interval change along a long run, a stretch's must not; a short piece at a
@@ -1007,7 +1009,7 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
                                      blur[p, 0], blur[p, 1] / pitch[p] ** 2, TIGHT_GAP_SIGMAS,
                                      runs)  # fmt: skip
             else:
-                m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs)
+                m = _find_runs(bands[p], counts[p], MIN_RUN_BANDS, runs, WHOLE_RUN)
             if m == 0:
                 continue
             prep = np.empty((m, 6))

@@ -39,6 +39,7 @@ from .flow import (
     warm_up_reread,
 )
 from .intervals import IntervalModel
+from .kernel_options import NO_CFUNC
 from .profile_model import static_width_excess, tables
 from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
@@ -382,9 +383,9 @@ class DepthPipeline:
         compilation on a first run, the largest part of the pipeline's), the depth
         from the line intervals (about 1.3 s; it runs only where lines move too little),
         the whole-column intervals (about 3.7 s; only for patterns whose lines are
-        off their nominal centres), the arcs' intervals (about 2.3 s;
+        off their nominal centres), the arcs' intervals (about 3.5 s;
         :func:`lightflow.app.core.arcs.warm_up`) and the second reading of the flows and the
-        interval depth's own kernels (about 4 s; :func:`warm_up_kernels`,
+        interval depth's own kernels (about 2.5 s; :func:`warm_up_kernels`,
         :func:`lightflow.app.core.flow.warm_up_reread`).
         """
         if self._overlap is not None:
@@ -566,8 +567,7 @@ class DepthPipeline:
             return None, None
         gh, gw = self.grid_shape
         # the rows as they were: their intervals, and with rescued bands the other fields
-        old = np.empty((2, grids.shape[1] if rescued else 2, len(rows), gw))
-        _gather_rows(grids, rows, old)
+        old = grids[:, :grids.shape[1] if rescued else 2].take(rows, axis=2)  # C order
         for p in range(2):
             bd.rasterise_cells(bands[p], counts[p], self._rows_per_cell, cfg.stride, gw, 0.5,
                                self._fields, grids[p], rows)  # fmt: skip
@@ -975,7 +975,8 @@ def _band_set(channel: str, bands: np.ndarray, counts: np.ndarray, row_y: np.nda
 
 
 def warm_up_kernels() -> None:
-    """Compile (or load) the kernels of :meth:`DepthPipeline._arc_intervals` and
+    """Compile (or load) the kernels of :meth:`DepthPipeline._arc_intervals` (with the
+    rasterising of the grid rows the arcs change) and
     :meth:`DepthPipeline._depth_from_intervals`, with a frame's argument types.
 
     A test image of straight stripes reaches neither (no interval changes, no lines that
@@ -985,8 +986,10 @@ def warm_up_kernels() -> None:
     """
     grids = np.zeros((2, 4, 4, 4))
     rows = np.array([0, 2], np.int64)
-    old = np.empty((2, 4, 2, 4))
-    _gather_rows(grids, rows, old)
+    old = grids.take(rows, axis=2)
+    bands = np.full((1, 2, bd.N_FIELDS), np.nan)
+    fields = np.array(bd.GRID_FIELDS, np.int64)
+    bd.rasterise_cells(bands, np.zeros(1, np.int64), 1, 4, 4, 0.5, fields, grids[0], rows[:1])
     ratio = np.empty((2, 2, 4))
     changed = np.empty((2, 4), np.bool_)
     _compare_rows(old, grids, rows, ratio, changed)
@@ -1004,17 +1007,7 @@ def warm_up_kernels() -> None:
 # (:meth:`DepthPipeline._arc_intervals`), with numpy's arithmetic.
 
 
-@nb.njit(cache=True, nogil=True)
-def _gather_rows(grids, rows, out):
-    """``out[p, f, q]``: row ``rows[q]`` of field ``f`` (the first ``out.shape[1]``) of
-    pattern ``p`` of ``grids``."""
-    for p in range(2):
-        for f in range(out.shape[1]):
-            for q in range(rows.size):
-                out[p, f, q] = grids[p, f, rows[q]]
-
-
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _compare_rows(old, grids, rows, ratio, changed):
     """``ratio``: per pattern, the old interval (``old[:, 1]``, rows ``rows`` of ``grids``
     as they were) over the new; ``changed``: with the four fields in ``old``, whether
@@ -1034,7 +1027,7 @@ def _compare_rows(old, grids, rows, ratio, changed):
             changed[q, j] = c
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _shift_rows(log_ratio, rows, changed, shift, added):
     """``shift`` (float32): ``log_ratio`` (per pattern, on rows ``rows``), 0 where it is not
     finite; ``added``: a shift other than 0, or ``changed``."""
@@ -1050,7 +1043,7 @@ def _shift_rows(log_ratio, rows, changed, shift, added):
             added[i, j] = a
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _interval_variance(intervals, sens, cells, noise_var, floor_var, var, i0, i1):
     """``var`` (float32): the variance of the log depth from the intervals, ``(noise_var /
     bands + floor_var) / sens^2``, ``bands`` (at least 1) being ``cells`` over the mean of
@@ -1063,7 +1056,7 @@ def _interval_variance(intervals, sens, cells, noise_var, floor_var, var, i0, i1
             var[i, j] = (noise_var / bands + floor_var) / s2
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _join_interval_depth(z, var, swept, curved, max_std, near, far, depth, std, i0, i1):
     """:meth:`DepthPipeline._depth_from_intervals`' last step on rows ``i0 .. i1``: the
     interval depth ``z`` (its std ``z * sqrt(var)``) where it is within ``max_std`` of it

@@ -97,7 +97,7 @@ def pixel_value(d, L, w, sigma):
 
 
 # calls into bands.py: numba's cache would not see its changes
-@nb.njit(cache=False, error_model="numpy", no_cfunc_wrapper=True)
+@nb.njit(cache=False, error_model="numpy", no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _simulate_detector(L, w, sigma, phase, out2):
     """Run the real band detector on three identical bands; (m, r) of the middle one."""
     # a static line (L = 0) is the limit of a tiny sweep: box(L) * box(w) has no area
@@ -182,7 +182,7 @@ def _invert_table(m_tab, l_axis, m_axis, out, lo, hi):
                     break
 
 
-@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True)
+@nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _joint_cell(m_tab, r_tab, l_axis, m_axis, r_axis, rho, l_min, out, idx):
     """One (sigma, w) cell of :func:`_joint_table`."""
     nw, nl = m_tab.shape[1:]
@@ -653,7 +653,7 @@ def _ramp_sigma(m, line, r, still: bool = False):
     return cols, sig[j - 1] + (sig[j] - sig[j - 1]) * (-r0) / (r1 - r0)
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, no_cfunc_wrapper=True)
 def _ramp_roots(inverse, ramp, s_axis, sig, m, line, r, still, first, before, at):
     """:func:`_ramp_sigma` per band ``k``: the first index ``first[k]`` of ``sig`` where
     the predicted minus the measured ramp ``r[k]`` is finite and >= 0 (-1: none), the

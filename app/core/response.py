@@ -18,6 +18,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .kernel_options import NO_CFUNC
 from .rig import GAMMA_RANGE
 from .threads import run_rows
 
@@ -71,7 +72,7 @@ def linearise(image: np.ndarray, table: np.ndarray) -> np.ndarray:
     return out.reshape(image.shape)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **NO_CFUNC)
 def _apply_table(flat, table, out, r0, r1):
     for i in range(r0, r1):
         src = flat[i]

@@ -33,6 +33,7 @@ import numpy as np
 
 from .bands import BAND_VALID, F_CENTRE, F_INTERVAL, F_VALID, N_FIELDS, nearest_partners
 from .geometry import project_to_projector, undistort_pixels
+from .kernel_options import INTERNAL, NO_CFUNC
 from .patterns import line_centres, line_columns
 from .rig import CameraModel, Pattern, ProjectorModel
 
@@ -156,7 +157,7 @@ class LineSnapping:
         return LineSnapping(log_d, sums, factor, int(direction))
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _run_residuals(bands, s, m, log_d, sums, out):
     """Per candidate (and, last, no snapping): the squared residual of the run's log
     spacings less the candidate's from a smooth trend (zeros for runs too short to
@@ -206,7 +207,7 @@ def _run_residuals(bands, s, m, log_d, sums, out):
         out[ph] = max(r, 0.0) if np.isfinite(r) else IMPOSSIBLE
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _runs(bands, count, starts, ends):
     """Runs of one row: consecutive bands with centres whose spacings change smoothly."""
     nr = 0
@@ -260,7 +261,7 @@ def desnap_intervals(bands, counts, snapping: LineSnapping, nominal=None) -> int
                    snapping.direction, nominal)  # fmt: skip
 
 
-@nb.njit(cache=True, error_model="numpy", nogil=True)
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _desnap(bands, counts, log_d, sums, factor, direction, nominal):
     """:func:`desnap_intervals` on the tables."""
     rows = counts.shape[0]
@@ -345,7 +346,7 @@ def _desnap(bands, counts, log_d, sums, factor, direction, nominal):
     return fixed
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def _pool(tot, other, shift):
     """Add another run's residuals, each under the candidate it has when this run has
     candidate ``c`` (its first line is line ``c + shift``)."""
@@ -356,7 +357,7 @@ def _pool(tot, other, shift):
     tot[cands] += other[cands]
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _correct_run(bands, s, m, factor, nominal):
     """Scale the run's intervals by their nominal spacings over the measured ones, and
     put the centres the lines would have at their nominal columns in ``nominal``."""

@@ -178,7 +178,7 @@ def lookup_u16(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     return out
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, no_cfunc_wrapper=True)
 def _lookup_rows(table, index, out, r0, r1):
     for i in range(r0, r1):
         for j in range(index.shape[1]):

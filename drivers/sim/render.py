@@ -55,7 +55,7 @@ def _dot(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _sample_texture(tex, s, t):
     # s, t in [0, 1); bilinear
     h, w = tex.shape
@@ -75,7 +75,7 @@ def _sample_texture(tex, s, t):
     )
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _intersect(p, ox, oy, oz, dx, dy, dz, t, tex):
     """Ray distance, normal, albedo of primitive row ``p`` at time ``t`` (inf if missed)."""
     kind = int(p[0])
@@ -183,7 +183,7 @@ def _intersect(p, ox, oy, oz, dx, dy, dz, t, tex):
     return inf, 0.0, 0.0, 0.0, 0.0
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _trace(prims, ox, oy, oz, dx, dy, dz, t, tex, tmax):
     best = tmax
     bi = -1
@@ -365,7 +365,7 @@ def _lens_lookup(lens, table, xn, yn):
     return xd, yd
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _project_u(pp, X, Y, Z):
     """Projector pixel (u, v) of a camera-frame point; ``pp`` from :func:`pack_projector`."""
     px = pp[0] * X + pp[1] * Y + pp[2] * Z + pp[9]
@@ -377,7 +377,7 @@ def _project_u(pp, X, Y, Z):
     return pp[12] * xd + pp[13] * yd + pp[14], pp[15] * yd + pp[16]
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _lit_by(prims, tex, pp, centre, size, X, Y, Z, nx, ny, nz, t):
     """Whether projector ``pp`` lights the point: ``(u, cos incidence, distance^2)``.
 
@@ -401,7 +401,7 @@ def _lit_by(prims, tex, pp, centre, size, X, Y, Z, nx, ny, nz, t):
     return u, cosi, dist2
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _line_light(foot, u, sigma):
     """Light of a line set (footprints ``(n, 2)``) at column ``u`` with Gaussian defocus."""
     n = foot.shape[0]
@@ -424,7 +424,7 @@ def _line_light(foot, u, sigma):
     return total
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _pixel_mc(
     i, j, rays, ray_dx, ray_dy, prims, tex, projs, proj_centre, proj_size, proj_power,
     pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain, proj_black, defocus, crosstalk,
@@ -591,7 +591,7 @@ def box_erf_mean(k, lo, w, n):
     return total / den
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _line_light_box(foot, u0, w3, sigma, wbuf):
     """Mean light of a line set over u = u0 + sum_i w3[i] (s_i - 1/2), s in the unit cube."""
     n = 0
@@ -627,7 +627,7 @@ def _line_light_box(foot, u0, w3, sigma, wbuf):
     return total
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _point_state(prims, tex, projs, proj_centre, proj_size, proj_power, dx, dy, t, st):
     """Fill ``st`` = (signature, albedo, u_0, irr_0, u_1, irr_1, ...) of the ray at time t.
 
@@ -702,7 +702,7 @@ def knot_states(rays, prims, tex, projs, proj_centre, proj_size, proj_power, tim
                              times[kk], st[kk])  # fmt: skip
 
 
-@nb.njit(cache=True, no_cfunc_wrapper=True)
+@nb.njit(cache=True, no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _segment_exact(
     states, ii, j, ka, kb, weight, pat_proj, pat_channel, pat_foot, pat_nfoot, pat_gain,
     proj_black, defocus, crosstalk, ambient, n_proj, w3, wbuf, acc,
