@@ -821,8 +821,9 @@ def test_neighbours_swept_longer_are_lower_but_carry_the_same_light():
     "(m, r) the detector reports vary with the band's sub-pixel phase as much as with L (w=3, "
     "sigma=0.75, L=1.5: m 3.24-3.42 px, r 0.70-0.85 px over 8 phases), so inverting the "
     "phases' mean curve is biased; the mean of each phase's argmin (8.9 %) and the argmin over "
-    "every phase's curve (9.2 %) are no better.  Left: a reading that knows the band's phase "
-    "(its centre gives it)",
+    "every phase's curve (9.2 %) are no better, nor a plateau continuous in the phase (9.2 %). "
+    "Left: a reading that knows the band's phase (its centre gives it; "
+    "docs/experiments/short-sweep-phase.md)",
 )
 def test_sweeps_of_half_a_line_width_read_unbiased():
     t = tables()
