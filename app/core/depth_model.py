@@ -74,7 +74,7 @@ def pattern_params(rig: Rig) -> np.ndarray:
     return np.array(rows, dtype=np.float64)
 
 
-def _projector_params(rig: Rig) -> np.ndarray:
+def projector_params(rig: Rig) -> np.ndarray:
     """Per projector: R (9), t (3), fx, skew, cx, fy, cy, then :func:`lens_coefficients`."""
     out = np.zeros((len(rig.projectors), 17 + LENS_COEFFICIENTS))
     for i, p in enumerate(rig.projectors):
@@ -86,7 +86,7 @@ def _projector_params(rig: Rig) -> np.ndarray:
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always", no_cfunc_wrapper=True)
-def _proj_u_du(pp, x, y, z):
+def proj_u_du(pp, x, y, z):
     """Projector column u and du/dz for the camera point z * (x, y, 1)."""
     # camera point and its derivative along the ray
     X = pp[0] * x + pp[1] * y + pp[2]
@@ -108,8 +108,8 @@ def _proj_u_du(pp, x, y, z):
 @nb.njit(cache=True, error_model="numpy", no_cfunc_wrapper=True, no_cpython_wrapper=True)
 def _h_of_z(projs, pats, single, x, y, z):
     """h_p(z) = log|dk1/dz| - log|dk2/dz|; NaN where a projector cannot see the point."""
-    u1, du1, pz1 = _proj_u_du(projs[int(pats[0, 0])], x, y, z)
-    u2, du2, pz2 = _proj_u_du(projs[int(pats[1, 0])], x, y, z)
+    u1, du1, pz1 = proj_u_du(projs[int(pats[0, 0])], x, y, z)
+    u2, du2, pz2 = proj_u_du(projs[int(pats[1, 0])], x, y, z)
     if pz1 <= 0.0 or pz2 <= 0.0:
         return np.nan
     p1 = pitch_at(int(pats[0, 1]), pats[0, 2], pats[0, 3], u1)
@@ -252,7 +252,7 @@ def h_function(rig: Rig, rays_xy: np.ndarray, z: np.ndarray) -> np.ndarray:
 
     Returns NaN where a projector cannot see the point.
     """
-    projs, pats = _projector_params(rig), pattern_params(rig)
+    projs, pats = projector_params(rig), pattern_params(rig)
     return _h_many(projs, pats, rig.single_projector, rays_xy, np.broadcast_to(z, len(rays_xy)))
 
 
@@ -292,7 +292,7 @@ def build_lut(
     h0 = np.empty(n)
     inv_dh = np.empty(n)
     table = np.empty((n, LUT_SAMPLES))
-    projs, pats = _projector_params(rig), pattern_params(rig)
+    projs, pats = projector_params(rig), pattern_params(rig)
     chunk = max(gw, (n // 20 // gw) * gw)
 
     def build(s: int) -> int:

@@ -14,7 +14,7 @@ import cv2
 import numba as nb
 import numpy as np
 
-from . import arcs, snapping
+from . import arcs, snapping, triangulation
 from . import bands as bd
 from . import causes as cz
 from . import intervals as iv
@@ -45,6 +45,7 @@ from .results import BandSet, FrameResult
 from .rig import CHANNEL_INDEX, Rig
 from .snapping import LineSnapping, column_direction, desnap_intervals
 from .threads import run_rows, run_tasks
+from .triangulation import LineTriangulation
 
 MAX_BANDS_PER_ROW = 160
 #: print as long as a photo block is filled (``bands.print_block_px``) only in tiles of
@@ -112,6 +113,11 @@ class PipelineConfig:
         near its hub at 1 ms), get the depth their two line intervals give
         (:meth:`~lightflow.app.core.intervals.IntervalModel.depth`; needs
         ``predict_intervals``).  Lines that stand still (a wall) get none.
+    triangulate : bool
+        Give each band the depth of its line's plane on its camera ray, the line found
+        where both patterns' depths agree (the flow's depth names the candidates), and
+        the moving cells between such bands their depth
+        (:mod:`lightflow.app.core.triangulation`).
     measure_overlap : bool
         Measure the sweeps of runs of overlapping bands (rejected by the band
         detector) on their periodic profile (:func:`~lightflow.app.core.overlap.measure_runs`;
@@ -142,6 +148,7 @@ class PipelineConfig:
     arc_intervals: bool = True
     predict_intervals: bool = True
     interval_depth: bool = True
+    triangulate: bool = True
     measure_overlap: bool = True
     whole_columns: bool = True
     camera_gamma: float | str | None = None
@@ -255,6 +262,8 @@ class DepthPipeline:
         self._arcs = None
         if cfg.arc_intervals and not rig.single_projector and np.all(self.flow_model.kinds == 0):
             self._arcs = ArcIntervals(rig, self._row_y, middle)
+        self._triangulation = (LineTriangulation(rig, self._row_y, cfg.depth_range)
+                               if cfg.triangulate else None)  # fmt: skip
         # ... and the rows averaged around them
         extra = np.arange(-b.vertical_extra, b.vertical_extra + 1)
         self._read_rows = np.unique(np.clip(self._row_y[:, None] + extra, 0, cam.height - 1))
@@ -396,6 +405,8 @@ class DepthPipeline:
             snapping.warm_up()
         if self._arcs is not None:
             arcs.warm_up()
+        if self._triangulation is not None:
+            triangulation.warm_up()
         # the second reading and the interval depth: reached by no test image of stripes
         warm_up_reread()
         warm_up_kernels()
@@ -521,6 +532,11 @@ class DepthPipeline:
             slow = fm.swept & ((why == cz.STATIC) | (why == cz.UNCERTAIN))
             self._depth_from_intervals(intervals, fm.swept, slow, curved, sigma_f, depth_grid,
                                        std_grid)  # fmt: skip
+        if self._triangulation is not None:
+            # the flows' depths name the lines; cells whose lines move, or that have a depth
+            moving = fm.swept | np.isfinite(depth_grid)
+            self._triangulation.refine(bands, counts, self._rows_per_cell, cfg.stride,
+                                       depth_grid, moving, depth_grid, std_grid)  # fmt: skip
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)

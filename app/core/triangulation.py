@@ -1,0 +1,660 @@
+"""Depth by triangulating each band's line, the line found where both patterns agree.
+
+A band's centre is where its line lit the surface at mid-exposure (a line swept at a
+steady speed is centred on its middle position).  Which line of the pattern it is
+is not known from the image, but the flow's depth is near enough to name a few
+candidates: the lines the projector shows around the column that depth predicts.
+Each candidate gives a depth on the band's camera ray (the ray meets the projector's
+plane of that line).  Candidates of one pattern differ by a whole line, 2-7 cm of
+depth on the evaluation rigs, and so do those of the other pattern, by a different
+amount.  So along a camera row, the runs of bands of the two patterns (consecutive
+lines of one surface) are given one line offset each, the pair of offsets whose
+depths agree with each other (within :data:`AGREE` of the depth) and clearly better
+than any other pair.  The depth of such a band is then the triangulated one,
+precise to about a tenth of a millimetre where the flow's was precise to a
+centimetre, and it needs no line interval: bands near a ball's limb or cut by an
+edge, rejected for the flow, still have a centre.
+
+A run without a depth of its own takes the lines of the rows above or below (the same
+line continues from row to row).  Cells get depth from the triangulated bands along
+their row, interpolated between two neighbouring bands of one surface, and only
+where the surface moves (the cells a flow covers or whose lines are swept): a static
+wall keeps no depth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .bands import F_CENTRE
+from .depth_model import DepthRange, proj_u_du, projector_params
+from .geometry import LENS_COEFFICIENTS, undistort_pixels
+from .kernel_options import INTERNAL, NO_CFUNC
+from .patterns import line_columns
+from .rig import Rig
+from .snapping import column_direction
+from .threads import run_rows
+
+#: two patterns' triangulated depths of one surface agree within this share of the depth
+#: (a band centre is precise to a few hundredths of a pixel: about 0.1 mm at 0.75 m on
+#: the evaluation rigs; one line off moves a depth by 2-7 cm, 3-9 % of it)
+AGREE = 0.004
+#: a pair of line offsets is taken only when the next best pair disagrees by more than this
+#: many times as much, plus :data:`RUNNER_UP`
+MARGIN = 3.0
+#: ... plus this share of the depth
+RUNNER_UP = 0.003
+#: where two pairs of offsets agree (the patterns' depths per line near 1:2), the one
+#: whose depths lie within this share of the priors (the flows' depths) is taken if the
+#: other lies at least :data:`PRIOR_GAP` farther
+PRIOR_REACH = 0.04
+PRIOR_GAP = 0.04
+#: candidate line offsets on each side of the one the prior depth names
+SEARCH = 2
+#: neighbouring spacings of one run differ by less than this factor (else a new run)
+RUN_RATIO = 1.6
+#: a cell lies between two triangulated bands at most this many of their spacings apart,
+#: and their depths differ by at most :data:`STEP` of the depth (else a depth edge)
+GAP = 1.25
+STEP = 0.05
+#: a cell beyond the last triangulated band of its row keeps its depth this share of the
+#: band's spacing out
+REACH = 0.5
+#: predicted error of a triangulated depth, as a share of it, before the two patterns'
+#: disagreement is added
+FLOOR = 0.0005
+#: a band of the row above or below is the same line within this share of its spacing
+LINK = 0.25
+#: Newton iterations for the depth at which a ray meets a line's plane
+NEWTON = 8
+
+
+class LineTriangulation:
+    """Triangulated depth for the bands of a rig's two patterns.
+
+    Parameters
+    ----------
+    rig : Rig
+        The rig (camera, projectors, patterns: the columns each line lights).
+    row_y : numpy.ndarray
+        The image row of each measured row of the band detector.
+    depth_range : DepthRange
+        Depths outside it are none.
+    """
+
+    def __init__(self, rig: Rig, row_y: np.ndarray, depth_range: DepthRange):
+        cam = rig.camera
+        self.projs = projector_params(rig)
+        owner = {id(p): i for i, p in enumerate(rig.projectors)}
+        pats = rig.patterns
+        n_lines = max(len(line_columns(pat, proj.width)) for proj, pat in pats)
+        self.lit = np.full((2, n_lines), np.nan)
+        self.n_lit = np.zeros(2, np.int64)
+        self.proj_of = np.zeros(2, np.int64)
+        self.direction = np.zeros(2, np.int64)
+        mid = 0.5 * (depth_range.near + depth_range.far)
+        for p, (proj, pat) in enumerate(pats):
+            cols = line_columns(pat, proj.width)
+            # a line lights whole columns: its centre is theirs (those the projector has;
+            # lines beyond it keep their own, which no band can show)
+            lo, hi = cols[:, 0].astype(np.float64), cols[:, 1].astype(np.float64)
+            inside = (hi >= 0) & (lo <= proj.width - 1)
+            lo[inside] = np.maximum(lo[inside], 0.0)
+            hi[inside] = np.minimum(hi[inside], proj.width - 1.0)
+            centre = 0.5 * (lo + hi)
+            self.lit[p, : len(cols)] = centre
+            self.n_lit[p] = len(cols)
+            self.proj_of[p] = owner[id(proj)]
+            self.direction[p] = column_direction(cam, proj, mid)
+        # the camera ray of every whole column of every measured row (sub-pixel centres
+        # are interpolated: the lens model is smooth on that scale)
+        cols = np.arange(cam.width, dtype=np.float64)
+        ys = np.asarray(row_y, np.float64)
+        pix = np.stack(np.broadcast_arrays(cols[None, :], ys[:, None]), axis=-1)
+        self.rays = np.ascontiguousarray(undistort_pixels(cam.K, cam.dist, pix))
+        self.near = float(depth_range.near)
+        self.far = float(depth_range.far)
+
+    def refine(self, bands, counts, rows_per_cell, stride, prior, moving, depth_grid,
+               std_grid) -> int:  # fmt: skip
+        """Triangulate the bands and write their depth into the grids (in place).
+
+        Parameters
+        ----------
+        bands, counts : numpy.ndarray
+            Both patterns' detector output (``(2, rows, max_bands, N_FIELDS)``).
+        rows_per_cell, stride : int
+            The analysis grid: ``rows_per_cell`` measured rows per grid row.
+        prior : numpy.ndarray
+            ``(gh, gw)`` depth (m) that names the candidate lines (the flow's): NaN
+            where none.
+        moving : numpy.ndarray
+            ``(gh, gw)`` bool: the cells that may get a depth.
+        depth_grid, std_grid : numpy.ndarray
+            ``(gh, gw)`` depth and its predicted error (m), overwritten where a cell
+            has triangulated bands on both sides (or one, near).
+
+        Returns
+        -------
+        int
+            The number of cells written.
+        """
+        n_rows = counts.shape[1]
+        line = np.full((2, n_rows, bands.shape[2]), -1, np.int64)
+        z = np.full((2, n_rows, bands.shape[2]), np.nan)
+        resid = np.full((2, n_rows, bands.shape[2]), np.nan)
+        prior = np.ascontiguousarray(prior, np.float64)
+        args = (bands, counts, self.rays, self.projs, self.proj_of, self.lit, self.n_lit,
+                self.direction, prior, rows_per_cell, stride, self.near, self.far, line, z,
+                resid)  # fmt: skip
+        # the flows' depths name the lines (rows on a thread per core: the kernel
+        # releases the GIL), then the lines decided in the row above, and below
+        run_rows(_decide_rows, n_rows, *args, 0, 1)
+        _decide_rows(*args, 1, 1, 0, n_rows)
+        _decide_rows(*args, 1, -1, 0, n_rows)
+        return _cells(bands, counts, line, z, resid, rows_per_cell, stride,
+                      np.ascontiguousarray(moving), depth_grid, std_grid)  # fmt: skip
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _column(pp, rx, ry, z):
+    """:func:`~.depth_model.proj_u_du` compiled once for this module's kernels."""
+    return proj_u_du(pp, rx, ry, z)
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _depth_on_line(pp, rx, ry, column, z0, near, far):
+    """Depth at which the camera ray ``(rx, ry, 1)`` meets the projector's plane of
+    ``column``, by Newton's method in inverse depth from ``z0``; NaN outside
+    ``near .. far``."""
+    w = 1.0 / z0
+    for _ in range(NEWTON):
+        u, du, pz = _column(pp, rx, ry, 1.0 / w)
+        if not pz > 0.0 or du == 0.0:
+            return np.nan
+        f = u - column
+        # du/dw = du/dz * dz/dw = -du * z^2
+        w += f * w * w / du
+        if not w > 0.0:
+            return np.nan
+        if abs(f) < 1e-4:
+            break
+    z = 1.0 / w
+    if not (near <= z <= far):
+        return np.nan
+    return z
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _line_coordinate(lit, n, u):
+    """Continuous line index of projector column ``u`` (lines in column order); NaN
+    outside the pattern."""
+    if not (u >= lit[0] and u <= lit[n - 1]):
+        return np.nan
+    lo = 0
+    hi = n - 1
+    while hi - lo > 1:
+        m = (lo + hi) // 2
+        if lit[m] <= u:
+            lo = m
+        else:
+            hi = m
+    return lo + (u - lit[lo]) / (lit[hi] - lit[lo])
+
+
+#: no candidate offset for a run (no prior near it)
+NONE = -(1 << 40)
+#: bands of each run whose depths the search for a pair of offsets compares
+SAMPLES = 6
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
+def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, prior, k_rows,
+                 stride, near, far, line, z, resid, vertical, order, r0, r1):  # fmt: skip
+    """Decide the lines of the bands of every measured row (see :class:`LineTriangulation`).
+
+    ``vertical`` 0: the priors are the flows' depths; 1: also the lines decided in the
+    row before (``order`` +1: above, -1: below), for rows with bands still undecided.
+    Measured rows ``r0 .. r1`` only (the first pass's rows are independent).  The
+    search compares candidate depths from each band's projector column linearised in
+    inverse depth at its prior (a few tenths of a per cent off for the candidates a
+    line or two away); the depths of the pair taken are then solved exactly.
+    """
+    n_rows = counts.shape[1]
+    mb = bands.shape[2]
+    gh, gw = prior.shape
+    width = rays.shape[1]
+    nc = 2 * SEARCH + 1
+    off = 0.5 * (stride - 1)
+    xs = np.empty((2, mb))
+    slot = np.empty((2, mb), np.int64)
+    rxy = np.empty((2, mb, 2))
+    ell = np.empty((2, mb))
+    zp = np.empty((2, mb))
+    nb_ = np.zeros(2, np.int64)
+    n_runs = np.zeros(2, np.int64)
+    run_a = np.empty((2, mb), np.int64)
+    run_b = np.empty((2, mb), np.int64)
+    run_k = np.empty((2, mb), np.int64)
+    run_fixed = np.empty((2, mb), np.int64)
+    best_err = np.empty((2, mb))
+    cand = np.empty((2, mb, nc))
+    exact = np.empty((2, mb))
+    tmp = np.empty(2 * SAMPLES)
+    tmp2 = np.empty(2 * SAMPLES)
+    prio = np.empty(mb)
+    for step in range(r1 - r0):
+        r = r0 + step if order > 0 else r1 - 1 - step
+        i = min(r // k_rows, gh - 1)
+        o = r - order
+        if vertical and not _linkable(bands, counts, line, r, o):
+            continue
+        for p in range(2):
+            pp = projs[proj_of[p]]
+            n = 0
+            for q in range(counts[p, r]):
+                x = bands[p, r, q, F_CENTRE]
+                if not (np.isfinite(x) and 0.0 <= x <= width - 1):
+                    continue
+                xs[p, n] = x
+                slot[p, n] = q
+                c0 = min(int(x), width - 2)
+                t = x - c0
+                rx = rays[r, c0, 0] + t * (rays[r, c0 + 1, 0] - rays[r, c0, 0])
+                ry = rays[r, c0, 1] + t * (rays[r, c0 + 1, 1] - rays[r, c0, 1])
+                rxy[p, n, 0] = rx
+                rxy[p, n, 1] = ry
+                ell[p, n] = np.nan
+                zp[p, n] = np.nan
+                if vertical and line[p, r, q] >= 0:
+                    ell[p, n] = line[p, r, q]
+                    zp[p, n] = z[p, r, q]
+                else:
+                    j = min(max(int(round((x - off) / stride)), 0), gw - 1)
+                    zf = prior[i, j]
+                    if np.isfinite(zf) and near <= zf <= far:
+                        u, du, pz = _column(pp, rx, ry, zf)
+                        if pz > 0.0:
+                            ell[p, n] = _line_coordinate(lit[p], n_lit[p], u)
+                            zp[p, n] = zf
+                    if vertical and not np.isfinite(ell[p, n]) and 0 <= o < n_rows:
+                        # the same line in the row before: its decided index
+                        for q2 in range(counts[p, o]):
+                            if line[p, o, q2] >= 0 and abs(bands[p, o, q2, F_CENTRE] - x) \
+                                    < LINK * _spacing(bands, p, o, q2, counts[p, o]):  # fmt: skip
+                                ell[p, n] = line[p, o, q2]
+                                zp[p, n] = z[p, o, q2]
+                                break
+                n += 1
+            nb_[p] = n
+        for sweep in range(2):
+            for p in range(2):
+                pp = projs[proj_of[p]]
+                n = nb_[p]
+                # runs: consecutive slots whose spacings change slowly (on the second
+                # sweep, also split where the bands' lines were decided or not, or differ:
+                # a run that crossed a depth step got its lines on one side only, and the
+                # other side is a run of its own, to be paired anew)
+                m = 0
+                a = 0
+                while a < n:
+                    b = a + 1
+                    while b < n and slot[p, b] == slot[p, b - 1] + 1 \
+                            and (not sweep or _same_state(line, p, r, slot[p, b - 1],
+                                                          slot[p, b], direction[p])):  # fmt: skip
+                        if b - 1 > a:
+                            d = xs[p, b] - xs[p, b - 1]
+                            dp = xs[p, b - 1] - xs[p, b - 2]
+                            if not (dp / RUN_RATIO < d < dp * RUN_RATIO):
+                                break
+                        b += 1
+                    run_a[p, m] = a
+                    run_b[p, m] = b
+                    m += 1
+                    a = b
+                n_runs[p] = m
+                # each run's offset candidates, named by its priors' median (a run whose
+                # bands were all decided before keeps its offset), and their depths: the
+                # projector column linearised in inverse depth at the band's prior
+                for m in range(n_runs[p]):
+                    a, b = run_a[p, m], run_b[p, m]
+                    cnt = 0
+                    zs = 0.0
+                    decided = vertical == 1 or sweep == 1
+                    for t in range(a, b):
+                        if decided and line[p, r, slot[p, t]] < 0:
+                            decided = False
+                        if np.isfinite(ell[p, t]):
+                            prio[cnt] = ell[p, t] - direction[p] * slot[p, t]
+                            zs += zp[p, t]
+                            cnt += 1
+                    run_k[p, m] = NONE
+                    best_err[p, m] = np.inf
+                    run_fixed[p, m] = -1
+                    if b - a < 2:
+                        continue
+                    if decided:
+                        # its lines are known: the offset they share, and their depths
+                        q = slot[p, a]
+                        kc = line[p, r, q] - direction[p] * q
+                        run_fixed[p, m] = SEARCH
+                        cnt = b - a
+                        zs = 0.0
+                        for t in range(a, b):
+                            zp[p, t] = z[p, r, slot[p, t]]
+                            zs += zp[p, t]
+                    elif cnt == 0:
+                        continue
+                    else:
+                        kc = int(round(np.median(prio[:cnt])))
+                    run_k[p, m] = kc
+                    z_run = zs / cnt
+                    for t in range(a, b):
+                        z0 = zp[p, t] if np.isfinite(zp[p, t]) else z_run
+                        u0, du, pz = _column(pp, rxy[p, t, 0], rxy[p, t, 1], z0)
+                        g = -du * z0 * z0  # du/dw
+                        for c in range(nc):
+                            k = kc - SEARCH + c + direction[p] * slot[p, t]
+                            v = np.nan
+                            if pz > 0.0 and g != 0.0 and 0 <= k < n_lit[p]:
+                                w = 1.0 / z0 + (lit[p, k] - u0) / g
+                                if w > 0.0:
+                                    v = 1.0 / w
+                            cand[p, t, c] = v
+            # pairs of overlapping runs of the two patterns: the pair of offsets that agrees
+            for m0 in range(n_runs[0]):
+                if run_k[0, m0] == NONE:
+                    continue
+                a0, b0 = run_a[0, m0], run_b[0, m0]
+                for m1 in range(n_runs[1]):
+                    if run_k[1, m1] == NONE or (run_fixed[0, m0] >= 0 and run_fixed[1, m1] >= 0):
+                        continue
+                    a1, b1 = run_a[1, m1], run_b[1, m1]
+                    lo = max(xs[0, a0], xs[1, a1])
+                    hi = min(xs[0, b0 - 1], xs[1, b1 - 1])
+                    if not hi > lo:
+                        continue
+                    e1 = np.inf
+                    e2 = np.inf
+                    c0b = -1
+                    c1b = -1
+                    # among the pairs that agree, the two nearest the priors
+                    d1 = np.inf
+                    d2 = np.inf
+                    c0n = -1
+                    c1n = -1
+                    for c0 in range(nc):
+                        if run_fixed[0, m0] >= 0 and c0 != run_fixed[0, m0]:
+                            continue
+                        for c1 in range(nc):
+                            if run_fixed[1, m1] >= 0 and c1 != run_fixed[1, m1]:
+                                continue
+                            e, d = _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi,
+                                                 tmp, tmp2)  # fmt: skip
+                            if e < e1:
+                                e2 = e1
+                                e1 = e
+                                c0b = c0
+                                c1b = c1
+                            elif e < e2:
+                                e2 = e
+                            if e < AGREE:
+                                if d < d1:
+                                    d2 = d1
+                                    d1 = d
+                                    c0n = c0
+                                    c1n = c1
+                                elif d < d2:
+                                    d2 = d
+                    if not (e1 < AGREE and e2 > MARGIN * e1 + RUNNER_UP):
+                        # two pairs agree where the patterns' lines beat (their depths
+                        # per line near 1:2): the prior tells them apart when it is near
+                        # one and clearly farther from the other
+                        if not (d1 < PRIOR_REACH and d2 > d1 + PRIOR_GAP):
+                            continue
+                        c0b = c0n
+                        c1b = c1n
+                        e1 = _disagreement(xs, cand, zp, a0, b0, a1, b1, c0b, c1b, lo, hi, tmp,
+                                           tmp2)[0]  # fmt: skip
+                    # the exact depths of the pair taken
+                    for p in range(2):
+                        a, b, c = (a0, b0, c0b) if p == 0 else (a1, b1, c1b)
+                        kc = run_k[0, m0] if p == 0 else run_k[1, m1]
+                        pp = projs[proj_of[p]]
+                        for t in range(a, b):
+                            v = cand[p, t, c]
+                            k = kc - SEARCH + c + direction[p] * slot[p, t]
+                            if np.isfinite(v):
+                                v = _depth_on_line(pp, rxy[p, t, 0], rxy[p, t, 1], lit[p, k], v,
+                                                   near, far)  # fmt: skip
+                            exact[p, t] = v
+                    # each band that agrees with the other pattern's run takes its line (one
+                    # beyond that run's ends is not checked: a run of consecutive slots can
+                    # cross a depth step, where the lines beyond it are others, and their
+                    # depths still look smooth)
+                    for p in range(2):
+                        mm, a, b, c = (m0, a0, b0, c0b) if p == 0 else (m1, a1, b1, c1b)
+                        oa, ob = (a1, b1) if p == 0 else (a0, b0)
+                        if e1 >= best_err[p, mm]:
+                            continue
+                        best_err[p, mm] = e1
+                        good = np.zeros(b - a, np.bool_)
+                        dev = np.zeros(b - a)
+                        u = oa
+                        for t in range(a, b):
+                            x = xs[p, t]
+                            v = exact[p, t]
+                            if not (np.isfinite(v) and xs[1 - p, oa] <= x <= xs[1 - p, ob - 1]):
+                                continue
+                            while u + 2 < ob and xs[1 - p, u + 1] < x:
+                                u += 1
+                            f = (x - xs[1 - p, u]) / (xs[1 - p, u + 1] - xs[1 - p, u]) \
+                                if ob - oa > 1 else 0.0  # fmt: skip
+                            w = exact[1 - p, u] + f * (exact[1 - p, min(u + 1, ob - 1)]
+                                                       - exact[1 - p, u])  # fmt: skip
+                            dev[t - a] = abs(v - w) / v
+                            good[t - a] = dev[t - a] < AGREE
+                        for t in range(a, b):
+                            q = slot[p, t]
+                            if good[t - a] and (line[p, r, q] < 0 or not vertical):
+                                line[p, r, q] = run_k[p, mm] - SEARCH + c + direction[p] * q
+                                z[p, r, q] = exact[p, t]
+                                resid[p, r, q] = dev[t - a] * exact[p, t]
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _same_state(line, p, r, q0, q1, direction):
+    """Whether slots ``q0`` and ``q1`` of row ``r`` are both undecided, or both decided
+    with lines of one run (the same offset)."""
+    k0 = line[p, r, q0]
+    k1 = line[p, r, q1]
+    if k0 < 0 or k1 < 0:
+        return k0 < 0 and k1 < 0
+    return k0 - direction * q0 == k1 - direction * q1
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _spacing(bands, p, r, q, n):
+    """The spacing of band ``q`` of row ``r`` to its neighbours (camera px; inf alone)."""
+    c = bands[p, r, q, F_CENTRE]
+    s = 0.0
+    k = 0
+    if q > 0 and np.isfinite(bands[p, r, q - 1, F_CENTRE]):
+        s += c - bands[p, r, q - 1, F_CENTRE]
+        k += 1
+    if q + 1 < n and np.isfinite(bands[p, r, q + 1, F_CENTRE]):
+        s += bands[p, r, q + 1, F_CENTRE] - c
+        k += 1
+    return s / k if k else np.inf
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _linkable(bands, counts, line, r, o):
+    """Whether row ``r`` has an undecided band with a decided one of its pattern in row
+    ``o`` nearby (a vertical pass has something to do there)."""
+    if not 0 <= o < counts.shape[1]:
+        return False
+    for p in range(2):
+        for q in range(counts[p, r]):
+            x = bands[p, r, q, F_CENTRE]
+            if line[p, r, q] >= 0 or not np.isfinite(x):
+                continue
+            for q2 in range(counts[p, o]):
+                if line[p, o, q2] >= 0 and abs(bands[p, o, q2, F_CENTRE] - x) \
+                        < LINK * _spacing(bands, p, o, q2, counts[p, o]):  # fmt: skip
+                    return True
+    return False
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi, tmp, tmp2):
+    """Median relative disagreement of two runs' depths (candidates ``c0``, ``c1``) at up
+    to :data:`SAMPLES` bands of each inside ``lo .. hi`` that have a prior (``zp``: a
+    run can reach from a moving surface onto a still one), against the other run
+    interpolated, and the median relative distance of those depths from their priors;
+    inf where a depth is missing or fewer than two bands compare."""
+    n = 0
+    for p in range(2):
+        a, b, c = (a0, b0, c0) if p == 0 else (a1, b1, c1)
+        oa, ob, oc = (a1, b1, c1) if p == 0 else (a0, b0, c0)
+        # the run's bands with a prior inside the overlap, at most SAMPLES of them,
+        # evenly spread
+        k = 0
+        for t in range(a, b):
+            if lo <= xs[p, t] <= hi and np.isfinite(zp[p, t]):
+                k += 1
+        if k == 0:
+            continue
+        use = min(k, SAMPLES)
+        u = oa
+        s = 0
+        e = -1
+        for t in range(a, b):
+            if not (lo <= xs[p, t] <= hi and np.isfinite(zp[p, t])):
+                continue
+            e += 1
+            if s >= use or e != ((s * (k - 1)) // (use - 1) if use > 1 else 0):
+                continue
+            s += 1
+            x = xs[p, t]
+            while u + 2 < ob and xs[1 - p, u + 1] < x:
+                u += 1
+            v = cand[p, t, c]
+            if ob - oa > 1:
+                f = (x - xs[1 - p, u]) / (xs[1 - p, u + 1] - xs[1 - p, u])
+                w = cand[1 - p, u, oc] + f * (cand[1 - p, u + 1, oc] - cand[1 - p, u, oc])
+            else:
+                w = cand[1 - p, u, oc]
+            if not (np.isfinite(v) and np.isfinite(w)):
+                return np.inf, np.inf
+            tmp[n] = abs(v - w) / v
+            tmp2[n] = (v - zp[p, t]) / zp[p, t]
+            n += 1
+    if n < 2:
+        return np.inf, np.inf
+    return np.median(tmp[:n]), abs(np.median(tmp2[:n]))
+
+
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
+def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, std_grid):
+    """Depth of the moving cells from the triangulated bands along their row."""
+    gh, gw = depth_grid.shape
+    mb = bands.shape[2]
+    off = 0.5 * (stride - 1)
+    sx = np.empty(2 * mb)
+    sz = np.empty(2 * mb)
+    sr = np.empty(2 * mb)
+    ss = np.empty(2 * mb)
+    written = 0
+    for i in range(gh):
+        r = i * k_rows
+        if r >= counts.shape[1]:
+            break
+        # the row's triangulated bands of both patterns, in column order
+        n = 0
+        for p in range(2):
+            for q in range(counts[p, r]):
+                if line[p, r, q] < 0:
+                    continue
+                x = bands[p, r, q, F_CENTRE]
+                t = n
+                while t > 0 and sx[t - 1] > x:
+                    sx[t] = sx[t - 1]
+                    sz[t] = sz[t - 1]
+                    sr[t] = sr[t - 1]
+                    ss[t] = ss[t - 1]
+                    t -= 1
+                sx[t] = x
+                sz[t] = z[p, r, q]
+                sr[t] = resid[p, r, q]
+                ss[t] = _spacing(bands, p, r, q, counts[p, r])
+                n += 1
+        if n == 0:
+            continue
+        t = 0
+        for j in range(gw):
+            if not moving[i, j]:
+                continue
+            x = j * stride + off
+            while t < n and sx[t] < x:
+                t += 1
+            v = np.nan
+            e = 0.0
+            if 0 < t < n:
+                za, zb = sz[t - 1], sz[t]
+                gap = sx[t] - sx[t - 1]
+                if gap <= GAP * max(ss[t - 1], ss[t]) and abs(zb - za) <= STEP * za:
+                    f = (x - sx[t - 1]) / gap
+                    v = za + f * (zb - za)
+                    e = max(sr[t - 1], sr[t])
+            if not np.isfinite(v):
+                # beyond the row's last band on a side, or next to a depth edge: close to
+                # the nearest band, along the line through it and the next band of its
+                # surface (its own depth alone if there is none)
+                best = np.inf
+                for u, nxt in ((t - 1, t - 2), (t, t + 1)):
+                    if not (0 <= u < n and abs(sx[u] - x) <= REACH * ss[u]):
+                        continue
+                    if abs(sx[u] - x) >= best:
+                        continue
+                    best = abs(sx[u] - x)
+                    v = sz[u]
+                    e = sr[u]
+                    if 0 <= nxt < n and abs(sx[nxt] - sx[u]) <= GAP * max(ss[u], ss[nxt]) \
+                            and abs(sz[nxt] - sz[u]) <= STEP * sz[u]:  # fmt: skip
+                        v = sz[u] + (x - sx[u]) * (sz[nxt] - sz[u]) / (sx[nxt] - sx[u])
+                        e = max(sr[u], sr[nxt])
+            if np.isfinite(v):
+                depth_grid[i, j] = v
+                std_grid[i, j] = math.sqrt((FLOOR * v) ** 2 + e * e)
+                written += 1
+    return written
+
+
+def warm_up() -> None:
+    """Compile the kernels on a tiny problem (no rig needed)."""
+    bands = np.full((2, 2, 4, 10), np.nan)
+    bands[:, :, :3, F_CENTRE] = [[[2.0, 6.0, 10.0]] * 2] * 2
+    counts = np.full((2, 2), 3, np.int64)
+    rays = np.zeros((2, 16, 2))
+    rays[..., 0] = np.linspace(-0.1, 0.1, 16)
+    projs = np.zeros((1, 17 + LENS_COEFFICIENTS))
+    projs[0, [0, 4, 8]] = 1.0
+    projs[0, 9] = -0.1
+    projs[0, [12, 15]] = 100.0
+    lit = np.tile(np.arange(0.0, 40.0, 4.0), (2, 1))
+    n_lit = np.array([10, 10], np.int64)
+    zeros = np.zeros(2, np.int64)
+    prior = np.full((2, 4), 0.5)
+    line = np.full((2, 2, 4), -1, np.int64)
+    z = np.full((2, 2, 4), np.nan)
+    resid = np.full((2, 2, 4), np.nan)
+    for vertical, order in ((0, 1), (1, 1), (1, -1)):
+        _decide_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), prior,
+                     1, 4, 0.3, 3.0, line, z, resid, vertical, order, 0, 2)  # fmt: skip
+    grid = np.full((2, 4), np.nan, np.float32)  # the pipeline's depth and error grids
+    _cells(bands, counts, line, z, resid, 1, 4, np.ones((2, 4), np.bool_), grid, grid.copy())
+
