@@ -270,8 +270,9 @@ def cpu_seconds() -> float:
 class Helper:
     """The helper process: half of the band detector's kernels, the tables, the renderer.
 
-    Last, the kernels of the arcs' line intervals and of overlapping bands
-    (:func:`lightflow.app.core.arcs.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
+    Last, the kernels of the arcs' line intervals, of the triangulated depth and of
+    overlapping bands (:func:`lightflow.app.core.arcs.warm_up`,
+    :func:`lightflow.app.core.triangulation.warm_up`, :func:`lightflow.app.core.overlap.warm_up`),
     which this process would otherwise compile at the end of the pipeline's warm-up.  This
     process compiles meanwhile the kernels of the depth from the line intervals
     (:func:`lightflow.app.core.intervals.warm_up`) and of the grid rows the arcs change
@@ -312,8 +313,9 @@ class Helper:
         "from lightflow.drivers.sim.synthetic import warm_up_renderer\n"
         "warm_up_renderer(resolve_rig(rig), scene)\n"
         "print('renderer', flush=True)\n"
-        "from lightflow.app.core import arcs, overlap\n"
+        "from lightflow.app.core import arcs, overlap, triangulation\n"
         "arcs.warm_up()\n"
+        "triangulation.warm_up()\n"
         "overlap.warm_up()\n"
         "print('overlap', flush=True)\n"
     )

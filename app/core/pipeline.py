@@ -363,8 +363,10 @@ class DepthPipeline:
         image = np.full((cam.height, cam.width, 3), 20, np.uint8)
         image[:, (x % 40) < 14, 0] = 200  # red lines, a 40 px interval
         image[:, (x % 18) < 7, 2] = 200  # blue lines, an 18 px interval
-        # the arcs' kernels are optional here: a demo's helper process compiles them
-        config = self.config if optional else replace(self.config, arc_intervals=False)
+        # the arcs' and the triangulation's kernels are optional here: a demo's helper
+        # process compiles them
+        config = self.config if optional else replace(self.config, arc_intervals=False,
+                                                      triangulate=False)  # fmt: skip
         scratch = DepthPipeline(self.rig, config, lut=self.lut)
         # process() needs only these of a Frame (the core does not import drivers)
         scratch.process(SimpleNamespace(image=image, stem="warm-up", full_scale=255.0))
@@ -393,8 +395,9 @@ class DepthPipeline:
         from the line intervals (about 1.3 s; it runs only where lines move too little),
         the whole-column intervals (about 3.7 s; only for patterns whose lines are
         off their nominal centres), the arcs' intervals (about 3.5 s;
-        :func:`lightflow.app.core.arcs.warm_up`) and the second reading of the flows and the
-        interval depth's own kernels (about 2.5 s; :func:`warm_up_kernels`,
+        :func:`lightflow.app.core.arcs.warm_up`), the triangulated depth
+        (:func:`lightflow.app.core.triangulation.warm_up`) and the second reading of the
+        flows and the interval depth's own kernels (about 2.5 s; :func:`warm_up_kernels`,
         :func:`lightflow.app.core.flow.warm_up_reread`).
         """
         if self._overlap is not None:
