@@ -45,8 +45,9 @@ AGREE = 0.004
 #: a pair of line offsets is taken only when the next best pair disagrees by more than this
 #: many times as much, plus :data:`RUNNER_UP`
 MARGIN = 3.0
-#: ... plus this share of the depth
-RUNNER_UP = 0.003
+#: ... plus this share of the depth (tuning rigs: 0.003 -> 0.001 took the fans' p90 from
+#: 23-40 to 14-34 mm and the balls' from 3-8 to 2-6 mm, nothing worse)
+RUNNER_UP = 0.001
 #: where two pairs of offsets agree (the patterns' depths per line near 1:2), the one
 #: whose depths lie within this share of the priors (the flows' depths) is taken if the
 #: other lies at least :data:`PRIOR_GAP` farther
