@@ -10,10 +10,11 @@ depth on the evaluation rigs, and so do those of the other pattern, by a differe
 amount.  So along a camera row, the runs of bands of the two patterns (consecutive
 lines of one surface) are given one line offset each, the pair of offsets whose
 depths agree with each other (within :data:`AGREE` of the depth) and clearly better
-than any other pair.  The depth of such a band is then the triangulated one,
-precise to about a tenth of a millimetre where the flow's was precise to a
-centimetre, and it needs no line interval: bands near a ball's limb or cut by an
-edge, rejected for the flow, still have a centre.
+than any other pair; where two pairs agree (the patterns' depths per line near 1:2),
+the one near the flow's depth, if the other is clearly farther.  The depth of such a
+band is then the triangulated one, precise to about a tenth of a millimetre where the
+flow's was precise to a centimetre, and it needs no line interval: bands near a
+ball's limb or cut by an edge, rejected for the flow, still have a centre.
 
 A run without a depth of its own takes the lines of the rows above or below (the same
 line continues from row to row).  Cells get depth from the triangulated bands along
@@ -237,7 +238,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
     rxy = np.empty((2, mb, 2))
     ell = np.empty((2, mb))
     zp = np.empty((2, mb))
-    nb_ = np.zeros(2, np.int64)
+    n_bands = np.zeros(2, np.int64)
     n_runs = np.zeros(2, np.int64)
     run_a = np.empty((2, mb), np.int64)
     run_b = np.empty((2, mb), np.int64)
@@ -294,11 +295,11 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                             zp[p, n] = z[p, o, q2]
                             fresh[p, n] = True
                 n += 1
-            nb_[p] = n
+            n_bands[p] = n
         for sweep in range(2):
             for p in range(2):
                 pp = projs[proj_of[p]]
-                n = nb_[p]
+                n = n_bands[p]
                 # runs: consecutive slots whose spacings change slowly (on the second
                 # sweep, also split where the bands' lines were decided or not, or differ:
                 # a run that crossed a depth step got its lines on one side only, and the
