@@ -251,6 +251,10 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
     tmp2 = np.empty(2 * SAMPLES)
     prio = np.empty(mb)
     fresh = np.empty((2, mb), np.bool_)
+    # the projector column and its slope at a band's flow prior, computed once
+    col_u = np.empty((2, mb))
+    col_du = np.empty((2, mb))
+    col_known = np.zeros((2, mb), np.bool_)
     for step in range(r1 - r0):
         r = r0 + step if order > 0 else r1 - 1 - step
         i = min(r // k_rows, gh - 1)
@@ -275,6 +279,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                 rxy[p, n, 1] = ry
                 ell[p, n] = np.nan
                 zp[p, n] = np.nan
+                col_known[p, n] = False
                 fresh[p, n] = not vertical
                 if vertical and line[p, r, q] >= 0:
                     ell[p, n] = line[p, r, q]
@@ -287,6 +292,10 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                         if pz > 0.0:
                             ell[p, n] = _line_coordinate(lit[p], n_lit[p], u)
                             zp[p, n] = zf
+                            # kept: the candidates are linearised at this prior
+                            col_u[p, n] = u
+                            col_du[p, n] = du
+                            col_known[p, n] = True
                     if vertical and not np.isfinite(ell[p, n]) and 0 <= o < n_rows:
                         # the same line in the row before: its decided index
                         q2, link_at = _same_line(bands, counts, line, p, o, x, link_at)
@@ -361,7 +370,10 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                     z_run = zs / cnt
                     for t in range(a, b):
                         z0 = zp[p, t] if np.isfinite(zp[p, t]) else z_run
-                        u0, du, pz = _column(pp, rxy[p, t, 0], rxy[p, t, 1], z0)
+                        if col_known[p, t] and z0 == zp[p, t]:
+                            u0, du, pz = col_u[p, t], col_du[p, t], 1.0
+                        else:
+                            u0, du, pz = _column(pp, rxy[p, t, 0], rxy[p, t, 1], z0)
                         g = -du * z0 * z0  # du/dw
                         for c in range(nc):
                             k = kc - SEARCH + c + direction[p] * slot[p, t]
