@@ -405,6 +405,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                     d2 = np.inf
                     c0n = -1
                     c1n = -1
+                    en = np.inf
                     for c0 in range(nc):
                         if run_fixed[0, m0] >= 0 and c0 != run_fixed[0, m0]:
                             continue
@@ -426,6 +427,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                                     d1 = d
                                     c0n = c0
                                     c1n = c1
+                                    en = e
                                 elif d < d2:
                                     d2 = d
                     if not (e1 < AGREE and e2 > MARGIN * e1 + RUNNER_UP):
@@ -436,8 +438,9 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                             continue
                         c0b = c0n
                         c1b = c1n
-                        e1 = _disagreement(xs, cand, zp, a0, b0, a1, b1, c0b, c1b, lo, hi, tmp,
-                                           tmp2)[0]  # fmt: skip
+                        e1 = en
+                    if e1 >= best_err[0, m0] and e1 >= best_err[1, m1]:
+                        continue  # both runs were taken by a pair that agreed better
                     # the exact depths of the pair taken
                     for p in range(2):
                         a, b, c = (a0, b0, c0b) if p == 0 else (a1, b1, c1b)
