@@ -141,3 +141,38 @@ def test_no_depth_is_interpolated_across_a_step():
     assert have[:, : grid[1] // 2 - 20].mean() > 0.6 and have[:, grid[1] // 2 + 20 :].mean() > 0.6
     off = np.minimum(np.abs(depth[have] - 0.70), np.abs(depth[have] - 0.90))
     assert np.max(off) < 1e-4
+
+
+def test_depth_reaches_past_the_moving_cells_on_their_surface_only():
+    """Left half at 0.70 m, right half at 0.90 m, the lines found moving in a block of
+    the left half only (a ball whose limb shows no sweep): the bands linked to the block
+    through bands of its surface carry its depth a few lines further, never across the
+    step to the other surface, and not at all where the lines were seen standing still."""
+    def step(x):
+        return np.where(x < 800, 0.70, 0.90)
+
+    rig, tri, bands, counts, grid = setup(depth_of_x=step)
+    prior = cell_truth(grid, step).astype(np.float32)
+    moving = np.zeros(grid, bool)
+    moving[:, 100:150] = True  # x 400-600
+    x = np.arange(grid[1]) * STRIDE + 0.5 * (STRIDE - 1)
+
+    def depth_with(still):
+        depth = np.full(grid, np.nan, np.float32)
+        std = np.full(grid, np.nan, np.float32)
+        tri.refine(bands, counts, 1, STRIDE, prior, moving, depth, std, still=still)
+        return depth
+
+    depth = depth_with(None)
+    have = np.isfinite(depth)
+    beyond = have & ~moving
+    reach = x[beyond.any(axis=0)]
+    print(f"\ndepth beyond the block: x {reach.min():.0f}-{reach.max():.0f}")
+    assert np.all(np.abs(depth[have] - 0.70) < 1e-4)
+    # a few lines of either pattern on both sides of the block (HOPS bands), up to the step
+    assert have[:, 150:160].mean() > 0.9 and have[:, 90:100].mean() > 0.9
+    assert not have[:, x > 810].any()
+    # lines seen standing still outside the block: its depth ends at its last bands
+    depth = depth_with(~moving)
+    beyond = np.isfinite(depth) & ~moving
+    assert not beyond[:, (x < 380) | (x > 620)].any()

@@ -536,10 +536,12 @@ class DepthPipeline:
             self._depth_from_intervals(intervals, fm.swept, slow, curved, sigma_f, depth_grid,
                                        std_grid)  # fmt: skip
         if self._triangulation is not None:
-            # the flows' depths name the lines; cells whose lines move, or that have a depth
+            # the flows' depths name the lines; cells whose lines move, or that have a
+            # depth, and the bands of their surfaces up to lines that stand still
             moving = fm.swept | np.isfinite(depth_grid)
             self._triangulation.refine(bands, counts, self._rows_per_cell, cfg.stride,
-                                       depth_grid, moving, depth_grid, std_grid)  # fmt: skip
+                                       depth_grid, moving, depth_grid, std_grid,
+                                       still=why == cz.STATIC)  # fmt: skip
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)

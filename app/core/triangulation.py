@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numba as nb
 import numpy as np
 
-from .bands import F_CENTRE
+from .bands import F_CENTRE, F_END, F_START
 from .depth_model import DepthRange, proj_u_du, projector_params
 from .geometry import LENS_COEFFICIENTS, undistort_pixels
 from .kernel_options import INTERNAL, NO_CFUNC
@@ -71,6 +72,24 @@ REACH = 0.5
 FLOOR = 0.0003
 #: a band of the row above or below is the same line within this share of its spacing
 LINK = 0.25
+#: a band off the moving cells is on their surface when a chain of at most this many bands
+#: of one surface links it to a band among them (tuning rigs: the balls' coverage
+#: 8 -> unbounded gained 0-4 points, 3 -> 8 lost 1-7)
+HOPS = 8
+#: the moving cells that start such chains are those with at least half the cells of this
+#: window around them moving (a wall's lone cells whose noise passed as a sweep start
+#: none: off-object depth on the balls before a wall 1.2-1.9 -> 0.3 %)
+SEED_WINDOW = 5
+#: and no chain enters a still cell, nor a cell with at least half of this window around
+#: it still (a fan's hub, whose lines stand still but some of whose cells are not found
+#: so: off-object depth on the fans 1.4 -> 1.0 and 2.2 -> 1.8 %)
+STILL_WINDOW = 9
+#: ... and a cell off the moving cells takes a band's depth beyond it only on the band's own
+#: light (within this many camera px of its half-height edges), where its line lit the
+#: surface: half a spacing beyond a ball's limb or a blade's edge is often the wall
+#: (tuning rigs: off-object depth on the fans 1.0-1.8 -> 0.3-0.7 %, on the boards before
+#: a wall 1.1 -> 0.0 %, for 2-11 points of the balls' coverage)
+EXTENT = 1.0
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
 
@@ -122,7 +141,7 @@ class LineTriangulation:
         self.far = float(depth_range.far)
 
     def refine(self, bands, counts, rows_per_cell, stride, prior, moving, depth_grid,
-               std_grid) -> int:  # fmt: skip
+               std_grid, still=None) -> int:  # fmt: skip
         """Triangulate the bands and write their depth into the grids (in place).
 
         Parameters
@@ -135,10 +154,15 @@ class LineTriangulation:
             ``(gh, gw)`` depth (m) that names the candidate lines (the flow's): NaN
             where none.
         moving : numpy.ndarray
-            ``(gh, gw)`` bool: the cells that may get a depth.
+            ``(gh, gw)`` bool: the cells on a moving surface (they may get a depth).
         depth_grid, std_grid : numpy.ndarray
             ``(gh, gw)`` depth and its predicted error (m), overwritten where a cell
             has triangulated bands on both sides (or one, near).
+        still : numpy.ndarray, optional
+            ``(gh, gw)`` bool: the cells whose lines were measured standing still.  A
+            triangulated band outside ``moving`` is on the moving surface when a chain
+            of bands of one surface (:func:`_moving_bands`) links it to a band inside,
+            through no still cell; the cells between such bands get a depth too.
 
         Returns
         -------
@@ -159,8 +183,14 @@ class LineTriangulation:
         run_rows(_decide_rows, n_rows, *args, 0, 1)
         _decide_rows(*args, 1, 1, 0, n_rows)
         _decide_rows(*args, 1, -1, 0, n_rows)
-        return _cells(bands, counts, line, z, resid, rows_per_cell, stride, moving, depth_grid,
-                      std_grid)  # fmt: skip
+        if still is None:
+            still = np.zeros(moving.shape, np.bool_)
+        seeds = moving & (_share(moving, SEED_WINDOW) >= 0.5)
+        barrier = still | (_share(still, STILL_WINDOW) >= 0.5)
+        on_moving = _moving_bands(bands, counts, line, z, rows_per_cell, stride, seeds,
+                                  barrier, HOPS)  # fmt: skip
+        return _cells(bands, counts, line, z, resid, rows_per_cell, stride, moving, on_moving,
+                      depth_grid, std_grid)  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
@@ -603,8 +633,120 @@ def _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi, tmp, tmp2):
 
 
 @nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
-def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, std_grid):
-    """Depth of the moving cells from the triangulated bands along their row."""
+def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
+    """Which triangulated bands lie on a moving surface (``(2, rows, max_bands)`` bool).
+
+    Those in a ``seeds`` cell, and those that a chain of at most ``hops`` bands of one
+    surface links to one through no ``still`` cell: a ball's limb and a cut or printed
+    band have a centre (so a line and a depth) but no sweep that shows them moving.
+    Bands of one surface
+    are neighbours along a row (either pattern) at most :data:`GAP` of their spacing
+    apart, or the same line in the next measured row, with depths within :data:`STEP`
+    of each other: the wall behind a ball's limb is not one, and the still lines of a
+    wall or a fan's hub stop a chain.
+    """
+    n_rows = counts.shape[1]
+    mb = bands.shape[2]
+    gh, gw = seeds.shape
+    off = 0.5 * (stride - 1)
+    kk = 2 * mb
+    # per row, the triangulated bands of both patterns in column order
+    tx = np.empty((n_rows, kk))
+    tz = np.empty((n_rows, kk))
+    ts = np.empty((n_rows, kk))
+    tp = np.empty((n_rows, kk), np.int64)
+    tq = np.empty((n_rows, kk), np.int64)
+    tc = np.empty((n_rows, kk), np.int64)  # the band's cell column
+    nt = np.zeros(n_rows, np.int64)
+    for r in range(n_rows):
+        n = 0
+        for p in range(2):
+            for q in range(counts[p, r]):
+                if line[p, r, q] < 0:
+                    continue
+                x = bands[p, r, q, F_CENTRE]
+                t = n
+                while t > 0 and tx[r, t - 1] > x:
+                    tx[r, t] = tx[r, t - 1]
+                    tz[r, t] = tz[r, t - 1]
+                    ts[r, t] = ts[r, t - 1]
+                    tp[r, t] = tp[r, t - 1]
+                    tq[r, t] = tq[r, t - 1]
+                    t -= 1
+                tx[r, t] = x
+                tz[r, t] = z[p, r, q]
+                ts[r, t] = _spacing(bands, p, r, q, counts[p, r])
+                tp[r, t] = p
+                tq[r, t] = q
+                n += 1
+        nt[r] = n
+        for t in range(n):
+            tc[r, t] = min(max(int(round((tx[r, t] - off) / stride)), 0), gw - 1)
+    on = np.zeros((2, n_rows, mb), np.bool_)
+    seen = np.zeros((n_rows, kk), np.bool_)
+    dist = np.zeros((n_rows, kk), np.int64)
+    queue = np.empty(n_rows * kk, np.int64)
+    top = 0
+    for r in range(n_rows):
+        i = min(r // k_rows, gh - 1)
+        for t in range(nt[r]):
+            if seeds[i, tc[r, t]]:
+                seen[r, t] = True
+                queue[top] = r * kk + t
+                top += 1
+    head = 0
+    while head < top:
+        r = queue[head] // kk
+        t = queue[head] % kk
+        head += 1
+        p = tp[r, t]
+        on[p, r, tq[r, t]] = True
+        x = tx[r, t]
+        zt = tz[r, t]
+        s = ts[r, t]
+        k = line[p, r, tq[r, t]]
+        if dist[r, t] >= hops:
+            continue
+        for r2, lo, hi in ((r, t - 1, t), (r, t + 1, t + 2), (r - 1, 0, 0), (r + 1, 0, 0)):
+            if not 0 <= r2 < n_rows:
+                continue
+            if r2 != r:
+                # the same line a row apart: among the bands within half a spacing
+                lo = 0
+                hi = nt[r2]
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if tx[r2, mid] < x - 0.5 * s:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                hi = lo
+                while hi < nt[r2] and tx[r2, hi] <= x + 0.5 * s:
+                    hi += 1
+            i2 = min(r2 // k_rows, gh - 1)
+            for t2 in range(max(lo, 0), min(hi, nt[r2])):
+                if seen[r2, t2] or still[i2, tc[r2, t2]]:
+                    continue
+                if abs(tz[r2, t2] - zt) > STEP * zt:
+                    continue
+                if r2 == r:
+                    if abs(tx[r2, t2] - x) > GAP * max(s, ts[r2, t2]):
+                        continue
+                elif tp[r2, t2] != p or line[p, r2, tq[r2, t2]] != k:
+                    continue
+                seen[r2, t2] = True
+                dist[r2, t2] = dist[r, t] + 1
+                queue[top] = r2 * kk + t2
+                top += 1
+    return on
+
+
+@nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
+def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, depth_grid,
+           std_grid):  # fmt: skip
+    """Depth of the cells on a moving surface from the triangulated bands along their row:
+    any cell of ``moving``, and any other between two bands of ``on_moving`` or on the light
+    of one (:data:`EXTENT`)."""
     gh, gw = depth_grid.shape
     mb = bands.shape[2]
     off = 0.5 * (stride - 1)
@@ -612,6 +754,9 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, st
     sz = np.empty(2 * mb)
     sr = np.empty(2 * mb)
     ss = np.empty(2 * mb)
+    sm = np.empty(2 * mb, np.bool_)
+    sa = np.empty(2 * mb)
+    sb = np.empty(2 * mb)
     written = 0
     for i in range(gh):
         r = i * k_rows
@@ -630,24 +775,30 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, st
                     sz[t] = sz[t - 1]
                     sr[t] = sr[t - 1]
                     ss[t] = ss[t - 1]
+                    sm[t] = sm[t - 1]
+                    sa[t] = sa[t - 1]
+                    sb[t] = sb[t - 1]
                     t -= 1
                 sx[t] = x
+                sa[t] = bands[p, r, q, F_START]
+                sb[t] = bands[p, r, q, F_END]
                 sz[t] = z[p, r, q]
                 sr[t] = resid[p, r, q]
                 ss[t] = _spacing(bands, p, r, q, counts[p, r])
+                sm[t] = on_moving[p, r, q]
                 n += 1
         if n == 0:
             continue
         t = 0
         for j in range(gw):
-            if not moving[i, j]:
-                continue
             x = j * stride + off
             while t < n and sx[t] < x:
                 t += 1
+            # a cell outside the moving ones takes bands of the moving surface only
+            only = not moving[i, j]
             v = np.nan
             e = 0.0
-            if 0 < t < n:
+            if 0 < t < n and not (only and not (sm[t - 1] and sm[t])):
                 za, zb = sz[t - 1], sz[t]
                 gap = sx[t] - sx[t - 1]
                 if gap <= GAP * max(ss[t - 1], ss[t]) and abs(zb - za) <= STEP * za:
@@ -662,6 +813,8 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, st
                 for u, nxt in ((t - 1, t - 2), (t, t + 1)):
                     if not (0 <= u < n and abs(sx[u] - x) <= REACH * ss[u]):
                         continue
+                    if only and not (sm[u] and sa[u] - EXTENT <= x <= sb[u] + EXTENT):
+                        continue
                     if abs(sx[u] - x) >= best:
                         continue
                     best = abs(sx[u] - x)
@@ -673,7 +826,8 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, st
                     while 0 <= nxt < n and abs(sx[nxt] - sx[u]) < 0.25 * ss[u]:
                         nxt += step
                     if 0 <= nxt < n and abs(sx[nxt] - sx[u]) <= GAP * max(ss[u], ss[nxt]) \
-                            and abs(sz[nxt] - sz[u]) <= STEP * sz[u]:  # fmt: skip
+                            and abs(sz[nxt] - sz[u]) <= STEP * sz[u] \
+                            and (sm[nxt] or not only):  # fmt: skip
                         w = sz[u] + (x - sx[u]) * (sz[nxt] - sz[u]) / (sx[nxt] - sx[u])
                         if abs(w - sz[u]) <= STEP * sz[u]:
                             v = w
@@ -683,6 +837,12 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, depth_grid, st
                 std_grid[i, j] = math.sqrt((FLOOR * v) ** 2 + e * e)
                 written += 1
     return written
+
+
+def _share(mask: np.ndarray, window: int) -> np.ndarray:
+    """Per cell, the share of the ``window`` x ``window`` cells around it in ``mask``
+    (cells beyond the grid count as outside it)."""
+    return cv2.blur(mask.astype(np.float32), (window, window), borderType=cv2.BORDER_CONSTANT)
 
 
 def warm_up() -> None:
@@ -707,5 +867,7 @@ def warm_up() -> None:
         _decide_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), prior,
                      1, 4, 0.3, 3.0, line, z, resid, vertical, order, 0, 2)  # fmt: skip
     grid = np.full((2, 4), np.nan, np.float32)  # the pipeline's depth and error grids
-    _cells(bands, counts, line, z, resid, 1, 4, np.ones((2, 4), np.bool_), grid, grid.copy())
+    moving = np.ones((2, 4), np.bool_)
+    on = _moving_bands(bands, counts, line, z, 1, 4, moving, ~moving, HOPS)
+    _cells(bands, counts, line, z, resid, 1, 4, moving, on, grid, grid.copy())
 
