@@ -293,9 +293,10 @@ def test_tilted_board_moving_diagonally_unbiased_on_an_unseen_rig():
 def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     """Fan at the paper's 1 ms on a rig with a projector in front of the camera plane.
 
-    Measured here: median 0.13 mm, signed -0.13 mm, coverage 0.529, 0.2 % off the fan,
-    the depth triangulated.  The flows alone: median 2.0 mm, signed -1.2 mm, coverage
-    0.527 (where the lines move too
+    Measured here: median 0.14 mm, signed -0.13 mm, coverage 0.891, 0.65 % off the fan,
+    the depth triangulated and carried past the moving cells along the blades (before
+    that: 0.13 mm, -0.13 mm, 0.529, 0.2 %).  The flows alone: median 2.0 mm, signed
+    -1.2 mm, coverage 0.527 (where the lines move too
     little for a flow, the depth from the two line intervals, and averaged with the flow's
     where both are; without it: 4.5 mm, -3.9 mm, 0.312).  The second frame uses the
     blur measured on the wall's still lines, and its shorter static limit; before that
@@ -313,7 +314,7 @@ def test_fan_at_1ms_unbiased_on_an_unseen_rig():
     s = _signed_scores(rig, "fan", 0.001)
     assert s["median_mm"] <= 0.5
     assert abs(s["signed_mm"]) <= 0.4
-    assert s["coverage"] >= 0.48
+    assert s["coverage"] >= 0.8
     assert s["off_fraction"] <= 0.02
 
 
@@ -324,12 +325,15 @@ UNSEEN_RIGS = {
 }
 
 
-@pytest.mark.parametrize("name,median_mm,coverage", [("behind", 0.4, 0.3), ("in front", 2.5, 0.55)])
+@pytest.mark.parametrize("name,median_mm,coverage",
+                         [("behind", 0.4, 0.37), ("in front", 1.0, 0.65)])
 def test_ball_thrown_at_5ms_on_two_unseen_rigs(name, median_mm, coverage):
     """The paper's ball thrown toward the camera at 5 ms, its depth triangulated.
 
-    Measured here: median 0.15 mm, signed +0.07 mm, coverage 0.335 ("behind"); 1.55 mm,
-    +0.14 mm, 0.631 ("in front", where the flows' depth stands on more of the limb).
+    Measured here: median 0.15 mm, signed +0.09 mm, coverage 0.405 ("behind"); 0.64 mm,
+    +0.14 mm, 0.709 ("in front", where the flows' depth stands on more of the limb).
+    Before the triangulated depth reached past the moving cells and its runs were
+    carried on to the limb: 0.15 mm, +0.07 mm, 0.335; 1.55 mm, +0.14 mm, 0.631.
     """
     rig = _generated_rig(*UNSEEN_RIGS[name])
     s = _signed_scores(rig, "ball-toward", 0.005)
@@ -343,8 +347,9 @@ def test_fan_at_1ms_with_a_measured_blur_on_an_unseen_rig():
     """The same fan with the blur in the rig, 5 % above the simulator's (as ``lightflow rig
     blur`` measures it: within 1-6 %), so that sweeps shorter than the line count.
 
-    Measured here: median 0.13 mm, signed -0.13 mm, coverage 0.529, the depth
-    triangulated.  The flows alone: median 2.0 mm, signed -1.1 mm, coverage 0.528 (with
+    Measured here: median 0.14 mm, signed -0.13 mm, coverage 0.894, the depth
+    triangulated (0.529 before it reached past the moving cells).  The flows alone:
+    median 2.0 mm, signed -1.1 mm, coverage 0.528 (with
     the depth from the intervals; without it 3.8 mm, -2.7 mm, 0.405;
     the true blur then: 2.5 mm, +1.0 mm, 0.427; 5 % below it: 5.3 mm, +5.2 mm, 0.442).
     """
@@ -354,7 +359,7 @@ def test_fan_at_1ms_with_a_measured_blur_on_an_unseen_rig():
     s = _signed_scores(rig.with_blur([(0.378, 0.378)] * 2), "fan", 0.001)
     assert s["median_mm"] <= 0.5
     assert abs(s["signed_mm"]) <= 0.4
-    assert s["coverage"] >= 0.48
+    assert s["coverage"] >= 0.8
     assert s["off_fraction"] <= 0.02
 
 
