@@ -745,6 +745,27 @@ def _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi, tmp, tmp2):
     return np.median(tmp[:n]), abs(np.median(tmp2[:n]))
 
 
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _row_order(bands, counts, line, r, ps, qs):
+    """The triangulated bands of both patterns in row ``r``, in column order: their
+    patterns and slots into ``ps`` and ``qs``; returns how many."""
+    n = 0
+    for p in range(2):
+        for q in range(counts[p, r]):
+            if line[p, r, q] < 0:
+                continue
+            x = bands[p, r, q, F_CENTRE]
+            t = n
+            while t > 0 and bands[ps[t - 1], r, qs[t - 1], F_CENTRE] > x:
+                ps[t] = ps[t - 1]
+                qs[t] = qs[t - 1]
+                t -= 1
+            ps[t] = p
+            qs[t] = q
+            n += 1
+    return n
+
+
 @nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
 def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
     """Which triangulated bands lie on a moving surface (``(2, rows, max_bands)`` bool).
@@ -772,28 +793,13 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
     tc = np.empty((n_rows, kk), np.int64)  # the band's cell column
     nt = np.zeros(n_rows, np.int64)
     for r in range(n_rows):
-        n = 0
-        for p in range(2):
-            for q in range(counts[p, r]):
-                if line[p, r, q] < 0:
-                    continue
-                x = bands[p, r, q, F_CENTRE]
-                t = n
-                while t > 0 and tx[r, t - 1] > x:
-                    tx[r, t] = tx[r, t - 1]
-                    tz[r, t] = tz[r, t - 1]
-                    ts[r, t] = ts[r, t - 1]
-                    tp[r, t] = tp[r, t - 1]
-                    tq[r, t] = tq[r, t - 1]
-                    t -= 1
-                tx[r, t] = x
-                tz[r, t] = z[p, r, q]
-                ts[r, t] = _spacing(bands, p, r, q, counts[p, r])
-                tp[r, t] = p
-                tq[r, t] = q
-                n += 1
+        n = _row_order(bands, counts, line, r, tp[r], tq[r])
         nt[r] = n
         for t in range(n):
+            p, q = tp[r, t], tq[r, t]
+            tx[r, t] = bands[p, r, q, F_CENTRE]
+            tz[r, t] = z[p, r, q]
+            ts[r, t] = _spacing(bands, p, r, q, counts[p, r])
             tc[r, t] = min(max(int(round((tx[r, t] - off) / stride)), 0), gw - 1)
     on = np.zeros((2, n_rows, mb), np.bool_)
     seen = np.zeros((n_rows, kk), np.bool_)
@@ -870,36 +876,24 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, dep
     sm = np.empty(2 * mb, np.bool_)
     sa = np.empty(2 * mb)
     sb = np.empty(2 * mb)
+    sp = np.empty(2 * mb, np.int64)
+    sq = np.empty(2 * mb, np.int64)
     written = 0
     for i in range(gh):
         r = i * k_rows
         if r >= counts.shape[1]:
             break
         # the row's triangulated bands of both patterns, in column order
-        n = 0
-        for p in range(2):
-            for q in range(counts[p, r]):
-                if line[p, r, q] < 0:
-                    continue
-                x = bands[p, r, q, F_CENTRE]
-                t = n
-                while t > 0 and sx[t - 1] > x:
-                    sx[t] = sx[t - 1]
-                    sz[t] = sz[t - 1]
-                    sr[t] = sr[t - 1]
-                    ss[t] = ss[t - 1]
-                    sm[t] = sm[t - 1]
-                    sa[t] = sa[t - 1]
-                    sb[t] = sb[t - 1]
-                    t -= 1
-                sx[t] = x
-                sa[t] = bands[p, r, q, F_START]
-                sb[t] = bands[p, r, q, F_END]
-                sz[t] = z[p, r, q]
-                sr[t] = resid[p, r, q]
-                ss[t] = _spacing(bands, p, r, q, counts[p, r])
-                sm[t] = on_moving[p, r, q]
-                n += 1
+        n = _row_order(bands, counts, line, r, sp, sq)
+        for t in range(n):
+            p, q = sp[t], sq[t]
+            sx[t] = bands[p, r, q, F_CENTRE]
+            sa[t] = bands[p, r, q, F_START]
+            sb[t] = bands[p, r, q, F_END]
+            sz[t] = z[p, r, q]
+            sr[t] = resid[p, r, q]
+            ss[t] = _spacing(bands, p, r, q, counts[p, r])
+            sm[t] = on_moving[p, r, q]
         if n == 0:
             continue
         t = 0
