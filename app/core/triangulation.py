@@ -552,7 +552,10 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                     if line[p, r, q] >= 0:
                         continue
                     x = bands[p, r, q, F_CENTRE]
-                    if not np.isfinite(x):
+                    # not a band with an edge inside: where a blade's edge runs along the
+                    # lines, the wall's band beside it meets the blade's next line by
+                    # chance in row after row (a held-out fan: all 21 such bands wrong)
+                    if not np.isfinite(x) or bands[p, r, q, F_VALID] == BAND_IRREGULAR:
                         continue
                     for side in (-1, 1):
                         q1 = q + side  # the run's end
@@ -571,11 +574,6 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                             continue
                         k = k1 - side * direction[p]
                         if not 0 <= k < n_lit[p]:
-                            continue
-                        # not a band with an edge inside: where a blade's edge runs along the
-                        # lines, the wall's band beside it meets the blade's next line by
-                        # chance in row after row (a held-out fan: all 21 such bands wrong)
-                        if bands[p, r, q, F_VALID] == BAND_IRREGULAR:
                             continue
                         c0 = min(int(x), rays.shape[1] - 2)
                         t = x - c0
@@ -773,11 +771,10 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
     Those in a ``seeds`` cell, and those that a chain of at most ``hops`` bands of one
     surface links to one through no ``still`` cell: a ball's limb and a cut or printed
     band have a centre (so a line and a depth) but no sweep that shows them moving.
-    Bands of one surface
-    are neighbours along a row (either pattern) at most :data:`GAP` of their spacing
-    apart, or the same line in the next measured row, with depths within :data:`STEP`
-    of each other: the wall behind a ball's limb is not one, and the still lines of a
-    wall or a fan's hub stop a chain.
+    Bands of one surface are neighbours along a row (either pattern) at most
+    :data:`GAP` of their spacing apart, or the same line in the next measured row, with
+    depths within :data:`STEP` of each other: the wall behind a ball's limb is not one,
+    and the still lines of a wall or a fan's hub stop a chain.
     """
     n_rows = counts.shape[1]
     mb = bands.shape[2]
@@ -802,15 +799,14 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
             ts[r, t] = _spacing(bands, p, r, q, counts[p, r])
             tc[r, t] = min(max(int(round((tx[r, t] - off) / stride)), 0), gw - 1)
     on = np.zeros((2, n_rows, mb), np.bool_)
-    seen = np.zeros((n_rows, kk), np.bool_)
-    dist = np.zeros((n_rows, kk), np.int64)
+    dist = np.full((n_rows, kk), -1, np.int64)  # links from a seed; -1: not reached
     queue = np.empty(n_rows * kk, np.int64)
     top = 0
     for r in range(n_rows):
         i = min(r // k_rows, gh - 1)
         for t in range(nt[r]):
             if seeds[i, tc[r, t]]:
-                seen[r, t] = True
+                dist[r, t] = 0
                 queue[top] = r * kk + t
                 top += 1
     head = 0
@@ -844,7 +840,7 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
                     hi += 1
             i2 = min(r2 // k_rows, gh - 1)
             for t2 in range(max(lo, 0), min(hi, nt[r2])):
-                if seen[r2, t2] or still[i2, tc[r2, t2]]:
+                if dist[r2, t2] >= 0 or still[i2, tc[r2, t2]]:
                     continue
                 if abs(tz[r2, t2] - zt) > STEP * zt:
                     continue
@@ -853,7 +849,6 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
                         continue
                 elif tp[r2, t2] != p or line[p, r2, tq[r2, t2]] != k:
                     continue
-                seen[r2, t2] = True
                 dist[r2, t2] = dist[r, t] + 1
                 queue[top] = r2 * kk + t2
                 top += 1
