@@ -900,7 +900,7 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, dep
             only = not moving[i, j]
             v = np.nan
             e = 0.0
-            if 0 < t < n and not (only and not (sm[t - 1] and sm[t])):
+            if 0 < t < n and (not only or (sm[t - 1] and sm[t])):
                 za, zb = sz[t - 1], sz[t]
                 gap = sx[t] - sx[t - 1]
                 if gap <= GAP * max(ss[t - 1], ss[t]) and abs(zb - za) <= STEP * za:
