@@ -689,6 +689,14 @@ CONTINUATION_TOLERANCE = 0.3
 #: (line intervals) a band's link to the next row reaches (as the slant's links)
 FLOOD_PASSES = 2
 FLOOD_REACH = 0.3
+#: a train is contradicted where its pulses link (as the flood links them) to bands of a
+#: run measured with ``n = 0`` whose ``L / B`` differs from the train's by more than this:
+#: one surface's sweep does not jump by half an interval from one row to the next.  Such
+#: a run had two references for ``n`` (its floor and its bands' widths), a train measured
+#: past its neighbours only its floor, which another surface's gap can supply (fresh rig
+#: 19's near board, bands touching at 0.86 intervals: two rows' floors read ``n = 1``,
+#: and the flood carried that over the whole board, 225 mm in front of it)
+CONTRADICTION_JUMP = 0.5
 #: passes of :func:`_measure_floorless` along the rows: each measures the runs of touching
 #: bands next to a band measured before (one piece of 3-5 bands further per pass: about as
 #: far as four passes of the longer pieces of the other runs reached)
@@ -926,7 +934,7 @@ def warm_up(params: OverlapParams | None = None) -> None:
                           CONTINUATION_TOLERANCE)  # fmt: skip
     member = np.full(bands.shape[:3], -1, np.int64)
     _flood_trains(bands, counts, one, runs, one, B, prep[:, 4] * B, CONTINUATION_TOLERANCE,
-                  FLOOD_REACH, FLOOD_PASSES, member)  # fmt: skip
+                  FLOOD_REACH, FLOOD_PASSES, member, B, np.zeros(1, np.int64))  # fmt: skip
     _find_member_runs(bands, counts, member, MIN_RUN_BANDS, np.empty((1, 5), np.int64))
     # a long run of touching bands measured again in pieces (none measurable here)
     long = np.full((2, 1, 2 * RUN_PIECE_BANDS, N_FIELDS), np.nan)
@@ -1062,31 +1070,42 @@ def measure_runs(image, weights, row_y, bands, counts, line_px, pitch, blur,
         keep = (alone[:, O_CODE] == OV_MEASURED) & (alone[:, O_TURNS] >= 1)
         out[past[keep]] = alone[keep]
     done = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & ~tight)
-    _mark_runs(bands, pat, runs, done, np.ascontiguousarray(out[:, O_SWEEP]), B, True)
+    # touching bands first: they are the references a train must not contradict
+    trains = done[out[done, O_TURNS] >= 1]
+    touching = done[out[done, O_TURNS] == 0]
+    sweep = np.ascontiguousarray(out[:, O_SWEEP])
+    _mark_runs(bands, pat, runs, touching, sweep, B, True)
     # a long run of touching bands is one stretch so far, but its sweep changes along the
     # row (perspective): measured again in pieces, with the run's L / B as the reference
-    long = done[(out[done, O_TURNS] == 0)
-                & (runs[done, 2] - runs[done, 1] + 1 >= 2 * RUN_PIECE_BANDS)]  # fmt: skip
+    long = touching[runs[touching, 2] - runs[touching, 1] + 1 >= 2 * RUN_PIECE_BANDS]
     if len(long):
         _measure_pieces(signals, row[long], bands, pat[long], runs[long], out[long, O_SWEEP],
                         line_px, pitch, blur, params, width)  # fmt: skip
-    # past the ends of a run swept past its neighbours, bands that continue its pulse train
-    # are more of its pulses that the detector took for bands (no clean gap showed the
-    # floor near them): rejected, not measured whole intervals short
-    # (only runs measured so: a run of touching bands has the same spacing, lengths and
-    # heights, and the floor's reading alone, O_LEVEL, is off by more than an interval
-    # often enough to take one for a train)
-    trains = np.flatnonzero((out[:, O_CODE] == OV_MEASURED) & (out[:, O_TURNS] >= 1))
-    _reject_continuations(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
-                          CONTINUATION_TOLERANCE)  # fmt: skip
     # the rows above and below a measured train carry it too, where no clean gap near them
     # gave the floor: their pulses are measured with the train's L / B as the reference
-    # for n (those that cannot be stay rejected)
+    # for n (those that cannot be stay rejected); a train whose links reach touching bands
+    # measured an interval apart from it is not measured, nor carried
     flooded = 0
     if len(trains):
         member = np.full(bands.shape[:3], -1, np.int64)
+        contradicted = np.zeros(len(runs), np.int64)
         _flood_trains(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
-                      CONTINUATION_TOLERANCE, FLOOD_REACH, FLOOD_PASSES, member)  # fmt: skip
+                      CONTINUATION_TOLERANCE, FLOOD_REACH, FLOOD_PASSES, member, sweep / B,
+                      contradicted)  # fmt: skip
+        if np.any(contradicted[trains] > 0):
+            member[np.isin(member, trains[contradicted[trains] > 0])] = -1
+            trains = trains[contradicted[trains] == 0]
+        _mark_runs(bands, pat, runs, trains, sweep, B, True)
+        # past the ends of a run swept past its neighbours, bands that continue its pulse
+        # train are more of its pulses that the detector took for bands (no clean gap showed
+        # the floor near them): rejected, not measured whole intervals short
+        # (only runs measured so: a run of touching bands has the same spacing, lengths and
+        # heights, and the floor's reading alone, O_LEVEL, is off by more than an interval
+        # often enough to take one for a train)
+        _reject_continuations(bands, counts, pat, runs, trains, B, prep[:, 4] * B,
+                              CONTINUATION_TOLERANCE)  # fmt: skip
+        carried = (member >= 0) & (bands[..., F_VALID] == BAND_VALID)
+        bands[..., F_VALID][carried] = BAND_OVERLAP
         flooded = _measure_flooded(image, weights, row_y, bands, counts, member,
                                    out[:, O_SWEEP] / B, line_px, pitch, blur, params)  # fmt: skip
     # runs of touching bands with no clean gap within reach have no floor: the measured
@@ -1352,7 +1371,8 @@ def _mark_runs(bands, pat, runs, done, sweep, B, spacing):
 
 
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
-def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes, member):
+def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes, member,
+                  lb, contradicted):
     """Mark as one train's pulses the bands linked to it across rows, and reject them.
 
     A pulse train (bands swept past their neighbours, ``n >= 1``) whose rows show no clean
@@ -1364,8 +1384,12 @@ def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes
     within ``reach`` intervals) and row neighbours (one interval apart) whose length and
     height are the linked pulse's within ``tol`` (and the train's within twice that)
     are its pulses too.  ``passes`` sweeps down and up the rows.  ``member[p, r, k]``
-    gets the index into ``runs`` of the train of each band marked (-1 elsewhere); the
-    valid bands marked become ``BAND_OVERLAP``.  Returns the number of them.
+    gets the index into ``runs`` of the train of each band marked (-1 elsewhere).
+
+    Where a link (to the next row, or along a row one interval on) reaches a band of a
+    run measured with ``n = 0`` (``BAND_PERIODIC``) whose ``L / B`` differs from the
+    train's (``lb``, per run) by more than :data:`CONTRADICTION_JUMP`,
+    ``contradicted[q]`` of train ``q`` is counted up.
     """
     ref_len = np.full(member.shape, np.nan)
     ref_height = np.full(member.shape, np.nan)
@@ -1379,10 +1403,10 @@ def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes
             ref_height[p, r, k] = heights[q]
         for side in range(2):  # along the row first, as _reject_continuations
             _walk_row(bands, counts, p, r, runs[q, 2] if side else runs[q, 1], 1 if side else -1,
-                      q, B[q], pulse, heights, tol, member, ref_len, ref_height)  # fmt: skip
+                      q, B[q], pulse, heights, tol, member, ref_len, ref_height, lb,
+                      contradicted)  # fmt: skip
     partner = np.empty(bands.shape[2], np.int64)
     rows = counts.shape[1]
-    marked = 0
     for _ in range(passes):
         for down in (True, False):
             for t in range(1, rows):
@@ -1397,6 +1421,9 @@ def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes
                         if j < 0 or member[p, o, k] >= 0 or member[p, r, j] < 0:
                             continue
                         q = member[p, r, j]
+                        if _contradicts(bands[p, o, k], lb[q]):
+                            contradicted[q] += 1
+                            continue
                         if not _pulse_like(bands[p, o, k], ref_len[p, r, j], ref_height[p, r, j],
                                            pulse[q], heights[q], tol):  # fmt: skip
                             continue
@@ -1405,14 +1432,7 @@ def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes
                         ref_height[p, o, k] = bands[p, o, k, F_HEIGHT]
                         for step in (-1, 1):
                             _walk_row(bands, counts, p, o, k, step, q, B[q], pulse, heights, tol,
-                                      member, ref_len, ref_height)  # fmt: skip
-    for p in range(2):
-        for r in range(rows):
-            for k in range(counts[p, r]):
-                if member[p, r, k] >= 0 and bands[p, r, k, F_VALID] == BAND_VALID:
-                    bands[p, r, k, F_VALID] = BAND_OVERLAP
-                    marked += 1
-    return marked
+                                      member, ref_len, ref_height, lb, contradicted)  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", **_INTERNAL)
@@ -1438,17 +1458,31 @@ def _pulse_like(band, length, height, train_length, train_height, tol):
 
 
 @nb.njit(cache=True, error_model="numpy", **_INTERNAL)
+def _contradicts(band, lb):
+    """Whether ``band`` was measured periodic with ``n = 0`` at an ``L / B`` more than
+    :data:`CONTRADICTION_JUMP` from a train's ``lb``."""
+    if band[F_VALID] != BAND_PERIODIC or not band[F_INTERVAL] > 0.0:
+        return False
+    own = band[F_LENGTH] / band[F_INTERVAL]
+    return own < 1.0 and abs(own - lb) > CONTRADICTION_JUMP
+
+
+@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
 def _walk_row(bands, counts, p, r, k, step, q, b, pulse, heights, tol, member, ref_len,
-              ref_height):  # fmt: skip
+              ref_height, lb, contradicted):  # fmt: skip
     """From band ``k`` of row ``r`` along the row (``step``): the bands one interval ``b``
-    apart (within ``tol``) and pulse-like become train ``q``'s, until the first that is not."""
+    apart (within ``tol``) and pulse-like become train ``q``'s, until the first that is not
+    (which counts ``contradicted[q]`` up where it contradicts the train)."""
     prev = bands[p, r, k, F_CENTRE]
     i = k + step
     while 0 <= i < counts[p, r] and member[p, r, i] < 0:
         band = bands[p, r, i]
-        if not (abs(abs(band[F_CENTRE] - prev) - b) <= tol * b
-                and _pulse_like(band, ref_len[p, r, i - step], ref_height[p, r, i - step],
-                                pulse[q], heights[q], tol)):  # fmt: skip
+        spaced = abs(abs(band[F_CENTRE] - prev) - b) <= tol * b
+        if spaced and _contradicts(band, lb[q]):
+            contradicted[q] += 1
+            break
+        if not (spaced and _pulse_like(band, ref_len[p, r, i - step],
+                                       ref_height[p, r, i - step], pulse[q], heights[q], tol)):
             break
         member[p, r, i] = q
         ref_len[p, r, i] = band[F_LENGTH]
