@@ -47,7 +47,7 @@ from lightflow.app.memory import keep_freed_memory
 from lightflow.app.recording import load_frame, read_recording
 
 #: bump when the outputs of a chunk change meaning (invalidates resumable state)
-BATCH_FORMAT = "lightflow-batch/1"
+BATCH_FORMAT = "lightflow-batch/2"
 #: frames per task
 DEFAULT_CHUNK_FRAMES = 60
 #: frames per scan task (loading only: cheaper than processing)
@@ -139,7 +139,7 @@ def state_task(
     rec: str, rig: Rig | None, config: PipelineConfig, good: list[int], starts: list[int]
 ) -> dict:
     """The pipeline state a sequential replay has before each of the good-frame
-    positions ``starts`` (ascending, > 0), found by processing only the frames
+    positions ``starts`` (ascending, >= 0), found by processing only the frames
     that change it (about one in ``crosstalk_every``): ``{"states": [...], "task_s": s}``."""
     t0 = time.perf_counter()
     recording = read_recording(rec, rig)
@@ -163,6 +163,7 @@ def chunk_task(
     indices: list[int],
     start: int,
     state: dict | None,
+    lead: int | None,
     out_dir: str,
     export_depth: bool,
     export_ply: bool,
@@ -170,8 +171,13 @@ def chunk_task(
     hook: Callable | None = None,
 ) -> dict:
     """Process the good frames ``indices`` of a chunk (the first being good frame number
-    ``start`` of the recording, ``state`` the pipeline state before it; ``None`` for the
-    first chunk), write their outputs, then the marker."""
+    ``start`` of the recording), write their outputs, then the marker.
+
+    ``state`` is the pipeline state before the good frame ``lead`` (recording index) just
+    before the chunk (``None`` for the first chunk): that frame is processed first and not
+    written, because a frame's depth also depends on how its lines moved since the one
+    before (:func:`lightflow.app.core.flow.moved_lines`).
+    """
     if hook is not None:
         hook(rec, indices)
     from lightflow.app.core.results import RunStats
@@ -182,7 +188,8 @@ def chunk_task(
     recording = read_recording(rec, rig)
     pipeline = worker_pipeline(recording.rig, config)
     if state is not None:
-        restore_state(pipeline, state, start)
+        restore_state(pipeline, state, start - 1)
+        pipeline.process(_frame(recording, lead, load_frame(recording, lead)))
     out = Path(out_dir)
     sinks = []
     if export_depth:
@@ -576,7 +583,8 @@ def _run_jobs(client, pending, options: BatchOptions, progress: BatchProgress, j
         submitted += 1
 
     def submit_chunks(job, states: list[dict]) -> None:
-        """Chunk c > 0 starts at good frame c * size, seeded with states[c - 1]."""
+        """Chunk c > 0 starts at good frame c * size, seeded with states[c - 1] (the state
+        before the good frame ahead of it, which it processes first)."""
         job.chunks_left = 0
         for c, indices in enumerate(job.chunks):
             info = _read_json(job.marker(c))
@@ -584,8 +592,9 @@ def _run_jobs(client, pending, options: BatchOptions, progress: BatchProgress, j
                 job.chunk_info[c] = info  # finished by an earlier run
                 continue
             state = None if c == 0 else states[c - 1]
+            lead = None if c == 0 else job.good[c * size - 1]
             submit(job, "chunk", c, chunk_task, job.rec, rig, cfg, indices, c * size, state,
-                   str(job.out), options.export_depth, options.export_ply,
+                   lead, str(job.out), options.export_depth, options.export_ply,
                    str(job.marker(c)), options.hook)  # fmt: skip
             job.chunks_left += 1
         if job.chunks_left == 0:
@@ -601,7 +610,8 @@ def _run_jobs(client, pending, options: BatchOptions, progress: BatchProgress, j
         write_json_atomic(job.book / "plan.json", {
             "key": job.key, "bad": {str(i): v for i, v in job.bad.items()}, "good": job.good,
         })  # fmt: skip
-        starts = [c * size for c in range(1, len(job.chunks))]
+        # each chunk c > 0 starts from the frame ahead of it (see chunk_task)
+        starts = [c * size - 1 for c in range(1, len(job.chunks))]
         cached = _read_pickle(job.book / "states.pkl")
         if cached and cached.get("key") == job.key and len(cached["states"]) == len(starts):
             submit_chunks(job, cached["states"])

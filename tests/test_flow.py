@@ -226,3 +226,25 @@ def test_reread_keeps_the_choice_of_its_numpy_passes():
     got = (again.log_ratio, *again.flows, again.lr_var, again.lr_sys, again.why, again.swept)
     for a, b in zip(got, want, strict=True):
         assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True)
+
+
+def test_lines_moved_between_frames_are_told_from_noise_and_from_gaps():
+    """A cell moved where either pattern's band width or interval changed by more than
+    MOVED_TOLERANCE_PX between two frames that both measured it; noise below it, and a
+    cell measured in one frame only, are not a move."""
+    from lightflow.app.core.flow import MOVED_TOLERANCE_PX, moved_lines
+
+    rng = np.random.default_rng(3)
+    previous = np.full((2, 2, 3, 4), 10.0)
+    grids = previous + rng.uniform(-0.8, 0.8, previous.shape) * MOVED_TOLERANCE_PX
+    grids[0, 0, 0, 0] += 2.0  # pattern 0's band wider: moved
+    grids[1, 1, 1, 1] -= 2.0  # pattern 1's interval shorter: moved
+    previous[0, 0, 2, 2] = np.nan  # a band width measured in this frame only: no move
+    grids[0, 0, 2, 2] = 30.0
+    previous[1, 0, 2, 3] = np.nan  # measured in the previous frame only
+    grids[1, 0, 2, 3] = 30.0
+    moved = moved_lines(grids, previous)
+    assert moved.shape == (3, 4)
+    expected = np.zeros((3, 4), bool)
+    expected[0, 0] = expected[1, 1] = True
+    assert np.array_equal(moved, expected)

@@ -489,9 +489,10 @@ def test_a_webcam_fan_gets_its_gamma_from_the_wall_behind():
     still lines between the first frames and linearises from the second frame on.
 
     Measured (frames 1-2 of 3, the fan at 1 ms before a wall, camera gamma 2.2): gamma
-    2.16 from the wall; median 0.1 mm, signed -0.1 mm, 0.7 % off the object; the same
-    frames read as linear: 0.2 mm, -0.1 mm, but 23.8 % of the depth off the fan (the
-    wall's lines read as moving).  With the flows alone (before the twentieth session's
+    2.16 from the wall; median 0.1 mm, signed -0.1 mm, 0.8 % off the object (0.7 % before
+    lines that moved between frames counted as moving); the same frames read as linear:
+    0.2 mm, -0.1 mm, but 45.1 % of the depth off the fan (23.8 % before that; the wall's
+    lines read as moving).  With the flows alone (before the twentieth session's
     triangulated depth): 1.9 mm, +0.3 mm measured, 33 mm, +33 mm read as linear.
     """
     from lightflow.drivers.sim.synthetic import SensorModel

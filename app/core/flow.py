@@ -198,6 +198,11 @@ STILL_LINE_FRAMES = (1, 2)
 #: a grid cell's band width and line interval agree this closely between two frames
 #: where its line stands still (camera px)
 STILL_TOLERANCE_PX = 0.1
+#: a grid cell's line moved between two frames where its band width or line interval
+#: (measured in both) changed by more than this (camera px): five times the still lines'
+#: tolerance, above the measurements' noise on a rotating fan's hub (at 0.1 px a tuning
+#: fan's hub read as moved and 7 % of its depth went onto it)
+MOVED_TOLERANCE_PX = 0.5
 #: still-line measurements needed to trust them over the fit on moving bands
 STILL_MIN_LINES = 2000
 #: ... seen over magnifications that span this ratio (else the two parts of the blur
@@ -617,6 +622,30 @@ def still_lines(grids: np.ndarray, previous: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         return ((np.abs(grids[:, 0] - previous[:, 0]) < STILL_TOLERANCE_PX)
                 & (np.abs(grids[:, 1] - previous[:, 1]) < STILL_TOLERANCE_PX))  # fmt: skip
+
+
+def moved_lines(grids: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """Per grid cell, whether a pattern's line moved since the previous frame.
+
+    A line can stand still within an exposure and yet belong to a moving surface (a ball
+    moving along its lines): between frames, such a surface's lines move.
+
+    Parameters
+    ----------
+    grids, previous : numpy.ndarray
+        ``(2, >=2, h, w)``: per pattern, the band width at half height and the line
+        interval of this frame and the one before.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w)`` bool: in either pattern, both frames measured the cell and its band
+        width or interval differ by more than :data:`MOVED_TOLERANCE_PX`.
+    """
+    with np.errstate(invalid="ignore"):
+        moved = ((np.abs(grids[:, 0] - previous[:, 0]) > MOVED_TOLERANCE_PX)
+                 | (np.abs(grids[:, 1] - previous[:, 1]) > MOVED_TOLERANCE_PX))  # fmt: skip
+    return np.any(moved, axis=0)
 
 
 class FlowModel:

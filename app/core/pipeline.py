@@ -34,6 +34,7 @@ from .flow import (
     STILL_LINE_FRAMES,
     FlowModel,
     FlowParams,
+    moved_lines,
     smooth_log_ratio,
     still_lines,
     warm_up_reread,
@@ -290,6 +291,10 @@ class DepthPipeline:
         # neither option nor rig gives the response: measured on the lines that stand
         # still between the first frames (a wall), as the blur is; the frame before
         self._gamma_prev: tuple | None = None
+        #: the last frame's band widths and line intervals ``(2, 2, h, w)``: lines that
+        #: moved since are on a moving surface, even where they stand still within the
+        #: exposure (None before the first frame)
+        self._previous_lines: np.ndarray | None = None
 
     # ------------------------------------------------------------------ stages
 
@@ -483,6 +488,10 @@ class DepthPipeline:
             again = self._response_from_still_lines(frame, grids, timings)
             if again is not None:
                 bands, counts, grids = again
+                # the last frame's lines were read with another response: not comparable
+                self._previous_lines = None
+        moved = None if self._previous_lines is None else moved_lines(grids, self._previous_lines)
+        self._previous_lines = grids[:, :2].copy()
         t2 = time.perf_counter()
         flows = functools.partial(self.flow_model.combine, grids, cfg.flow, self._periodic)
         curved = None
@@ -537,11 +546,16 @@ class DepthPipeline:
                                        std_grid)  # fmt: skip
         if self._triangulation is not None:
             # the flows' depths name the lines; cells whose lines move, or that have a
-            # depth, and the bands of their surfaces up to lines that stand still
+            # depth, and the bands of their surfaces up to lines that stand still (within
+            # the exposure, and since the last frame: a ball's lines moving along themselves
+            # stand still within it)
             moving = fm.swept | np.isfinite(depth_grid)
+            still = why == cz.STATIC
+            if moved is not None:
+                still &= ~moved
             self._triangulation.refine(bands, counts, self._rows_per_cell, cfg.stride,
                                        depth_grid, moving, depth_grid, std_grid,
-                                       still=why == cz.STATIC)  # fmt: skip
+                                       still=still)  # fmt: skip
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
