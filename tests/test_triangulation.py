@@ -169,7 +169,7 @@ def test_depth_reaches_past_the_moving_cells_on_their_surface_only():
     reach = x[beyond.any(axis=0)]
     print(f"\ndepth beyond the block: x {reach.min():.0f}-{reach.max():.0f}")
     assert np.all(np.abs(depth[have] - 0.70) < 1e-4)
-    # a few lines of either pattern on both sides of the block (HOPS bands), up to the step
+    # the lines of either pattern on both sides of the block, up to the step
     assert have[:, 150:160].mean() > 0.9 and have[:, 90:100].mean() > 0.9
     assert not have[:, x > 810].any()
     # lines seen standing still outside the block: its depth ends at its last bands

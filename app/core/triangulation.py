@@ -75,9 +75,11 @@ FLOOR = 0.0003
 #: a band of the row above or below is the same line within this share of its spacing
 LINK = 0.25
 #: a band off the moving cells is on their surface when a chain of at most this many bands
-#: of one surface links it to a band among them (tuning rigs: the balls' coverage
-#: 8 -> unbounded gained 0-4 points, 3 -> 8 lost 1-7)
-HOPS = 8
+#: of one surface links it to a band among them: a bound on a frame's work, not a rule
+#: (tuning rigs: 40 and 1000 gave the same; 8, the twenty-first session's, cost the balls
+#: 3-10 points of coverage once lines that moved between frames stopped no chain, and the
+#: off-object depth stayed within 0.5 %)
+HOPS = 64
 #: the moving cells that start such chains are those with at least half the cells of this
 #: window around them moving (a wall's lone cells whose noise passed as a sweep start
 #: none: off-object depth on the balls before a wall 1.2-1.9 -> 0.3 %)
