@@ -695,7 +695,7 @@ FLOOD_REACH = 0.3
 #: a run had two references for ``n`` (its floor and its bands' widths), a train measured
 #: past its neighbours only its floor, which another surface's gap can supply (fresh rig
 #: 19's near board, bands touching at 0.86 intervals: two rows' floors read ``n = 1``,
-#: and the flood carried that over the whole board, 225 mm in front of it)
+#: and the flood carried that over the whole board, 226 mm in front of it)
 CONTRADICTION_JUMP = 0.5
 #: passes of :func:`_measure_floorless` along the rows: each measures the runs of touching
 #: bands next to a band measured before (one piece of 3-5 bands further per pass: about as
@@ -1373,7 +1373,7 @@ def _mark_runs(bands, pat, runs, done, sweep, B, spacing):
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _flood_trains(bands, counts, pat, runs, trains, B, pulse, tol, reach, passes, member,
                   lb, contradicted):
-    """Mark as one train's pulses the bands linked to it across rows, and reject them.
+    """Mark as one train's pulses the bands linked to it across rows (the caller rejects them).
 
     A pulse train (bands swept past their neighbours, ``n >= 1``) whose rows show no clean
     gap a few intervals to either side has no floor to read ``n`` from: there its pulses
