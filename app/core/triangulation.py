@@ -410,7 +410,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                         continue
                     if cnt == 0 or not active:
                         continue
-                    kc = int(round(np.median(prio[:cnt])))
+                    kc = int(round(_median(prio, cnt)))
                     run_k[p, m] = kc
                     z_run = zs / cnt
                     for t in range(a, b):
@@ -457,8 +457,8 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                         for c1 in range(nc):
                             if run_fixed[1, m1] >= 0 and c1 != run_fixed[1, m1]:
                                 continue
-                            e, d = _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi,
-                                                 tmp, tmp2)  # fmt: skip
+                            e, n_cmp = _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo,
+                                                     hi, tmp, tmp2)  # fmt: skip
                             if e < e1:
                                 e2 = e1
                                 e1 = e
@@ -467,6 +467,8 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                             elif e < e2:
                                 e2 = e
                             if e < AGREE:
+                                # the distance from the priors only where it is used
+                                d = abs(_median(tmp2, n_cmp))
                                 if d < d1:
                                     d2 = d1
                                     d1 = d
@@ -701,8 +703,9 @@ def _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi, tmp, tmp2):
     """Median relative disagreement of two runs' depths (candidates ``c0``, ``c1``) at up
     to :data:`SAMPLES` bands of each inside ``lo .. hi`` that have a prior (``zp``: a
     run can reach from a moving surface onto a still one), against the other run
-    interpolated, and the median relative distance of those depths from their priors;
-    inf where a depth is missing or fewer than two bands compare."""
+    interpolated; inf where a depth is missing or fewer than two bands compare.  Also
+    how many bands compared: ``tmp2[:n]`` holds the relative distances of their depths
+    from their priors (whose median the caller takes only for pairs that agree)."""
     n = 0
     for p in range(2):
         a, b, c = (a0, b0, c0) if p == 0 else (a1, b1, c1)
@@ -736,13 +739,31 @@ def _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi, tmp, tmp2):
             else:
                 w = cand[1 - p, u, oc]
             if not (np.isfinite(v) and np.isfinite(w)):
-                return np.inf, np.inf
+                return np.inf, 0
             tmp[n] = abs(v - w) / v
             tmp2[n] = (v - zp[p, t]) / zp[p, t]
             n += 1
     if n < 2:
-        return np.inf, np.inf
-    return np.median(tmp[:n]), abs(np.median(tmp2[:n]))
+        return np.inf, 0
+    return _median(tmp, n), n
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _median(values, n):
+    """``np.median(values[:n])`` for ``n >= 1`` values without NaN, sorting them in place
+    (by insertion: a handful of values).  The same bits: numba's median selects the same
+    middle value, or the same two and returns their mean as ``(a + b) / 2``; it copies the
+    values first, an allocation per call, 25 candidate pairs per pair of runs.  The
+    callers' values are never NaN (ratios of finite depths; finite line indices)."""
+    for i in range(1, n):
+        v = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > v:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = v
+    h = n >> 1
+    return values[h] if n & 1 else (values[h - 1] + values[h]) / 2
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
