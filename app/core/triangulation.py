@@ -294,6 +294,10 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
     exact = np.empty((2, mb))
     tmp = np.empty(2 * SAMPLES)
     tmp2 = np.empty(2 * SAMPLES)
+    # the bands a pair of runs compares (:func:`_samples`)
+    s_t = np.empty(2 * SAMPLES, np.int64)
+    s_u = np.empty(2 * SAMPLES, np.int64)
+    s_f = np.empty(2 * SAMPLES)
     prio = np.empty(mb)
     fresh = np.empty((2, mb), np.bool_)
     # the projector column and its slope at a band's flow prior, computed once
@@ -441,6 +445,11 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                     hi = min(xs[0, b0 - 1], xs[1, b1 - 1])
                     if not hi > lo:
                         continue
+                    # the bands compared are those of every pair of candidates; with fewer
+                    # than two, every pair disagrees (inf) and none is taken
+                    n_cmp, n_first = _samples(xs, zp, a0, b0, a1, b1, lo, hi, s_t, s_u, s_f)
+                    if n_cmp < 2:
+                        continue
                     e1 = np.inf
                     e2 = np.inf
                     c0b = -1
@@ -457,8 +466,8 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                         for c1 in range(nc):
                             if run_fixed[1, m1] >= 0 and c1 != run_fixed[1, m1]:
                                 continue
-                            e, n_cmp = _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo,
-                                                     hi, tmp, tmp2)  # fmt: skip
+                            e = _disagreement(cand, zp, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f,
+                                              n_cmp, n_first, tmp, tmp2)  # fmt: skip
                             if e < e1:
                                 e2 = e1
                                 e1 = e
@@ -699,53 +708,71 @@ def _linkable(bands, counts, line, r, o):
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
-def _disagreement(xs, cand, zp, a0, b0, a1, b1, c0, c1, lo, hi, tmp, tmp2):
-    """Median relative disagreement of two runs' depths (candidates ``c0``, ``c1``) at up
-    to :data:`SAMPLES` bands of each inside ``lo .. hi`` that have a prior (``zp``: a
-    run can reach from a moving surface onto a still one), against the other run
-    interpolated; inf where a depth is missing or fewer than two bands compare.  Also
-    how many bands compared: ``tmp2[:n]`` holds the relative distances of their depths
-    from their priors (whose median the caller takes only for pairs that agree)."""
+def _samples(xs, zp, a0, b0, a1, b1, lo, hi, s_t, s_u, s_f):
+    """The bands at which :func:`_disagreement` compares two runs' depths: up to
+    :data:`SAMPLES` bands of each inside ``lo .. hi`` that have a prior (``zp``: a run
+    can reach from a moving surface onto a still one), evenly spread.  Into ``s_t``
+    their slots, ``s_u`` the other run's band before them and ``s_f`` their share of
+    the way to its next (where it has one); returns how many, and how many of them
+    are the first run's.  The same for every pair of candidates: found once per pair
+    of runs, not for each of the 25."""
     n = 0
+    n_first = 0
     for p in range(2):
-        a, b, c = (a0, b0, c0) if p == 0 else (a1, b1, c1)
-        oa, ob, oc = (a1, b1, c1) if p == 0 else (a0, b0, c0)
-        # the run's bands with a prior inside the overlap, at most SAMPLES of them,
-        # evenly spread
+        a, b = (a0, b0) if p == 0 else (a1, b1)
+        oa, ob = (a1, b1) if p == 0 else (a0, b0)
         k = 0
         for t in range(a, b):
             if lo <= xs[p, t] <= hi and np.isfinite(zp[p, t]):
                 k += 1
-        if k == 0:
-            continue
-        use = min(k, SAMPLES)
-        u = oa
-        s = 0
-        e = -1
-        for t in range(a, b):
-            if not (lo <= xs[p, t] <= hi and np.isfinite(zp[p, t])):
-                continue
-            e += 1
-            if s >= use or e != ((s * (k - 1)) // (use - 1) if use > 1 else 0):
-                continue
-            s += 1
-            x = xs[p, t]
-            while u + 2 < ob and xs[1 - p, u + 1] < x:
-                u += 1
-            v = cand[p, t, c]
-            if ob - oa > 1:
-                f = (x - xs[1 - p, u]) / (xs[1 - p, u + 1] - xs[1 - p, u])
-                w = cand[1 - p, u, oc] + f * (cand[1 - p, u + 1, oc] - cand[1 - p, u, oc])
-            else:
-                w = cand[1 - p, u, oc]
-            if not (np.isfinite(v) and np.isfinite(w)):
-                return np.inf, 0
-            tmp[n] = abs(v - w) / v
-            tmp2[n] = (v - zp[p, t]) / zp[p, t]
-            n += 1
-    if n < 2:
-        return np.inf, 0
-    return _median(tmp, n), n
+        if k > 0:
+            use = min(k, SAMPLES)
+            u = oa
+            s = 0
+            e = -1
+            for t in range(a, b):
+                if not (lo <= xs[p, t] <= hi and np.isfinite(zp[p, t])):
+                    continue
+                e += 1
+                if s >= use or e != ((s * (k - 1)) // (use - 1) if use > 1 else 0):
+                    continue
+                s += 1
+                x = xs[p, t]
+                while u + 2 < ob and xs[1 - p, u + 1] < x:
+                    u += 1
+                s_t[n] = t
+                s_u[n] = u
+                if ob - oa > 1:
+                    s_f[n] = (x - xs[1 - p, u]) / (xs[1 - p, u + 1] - xs[1 - p, u])
+                n += 1
+        if p == 0:
+            n_first = n
+    return n, n_first
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _disagreement(cand, zp, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f, n, n_first, tmp, tmp2):
+    """Median relative disagreement of two runs' depths (candidates ``c0``, ``c1``) at
+    the ``n`` bands :func:`_samples` chose, against the other run interpolated; inf
+    where a depth is missing.  ``tmp2[:n]`` then holds the relative distances of those
+    depths from their priors (whose median the caller takes only for pairs that
+    agree)."""
+    for i in range(n):
+        p = 0 if i < n_first else 1
+        c, oc = (c0, c1) if p == 0 else (c1, c0)
+        oa, ob = (a1, b1) if p == 0 else (a0, b0)
+        t = s_t[i]
+        u = s_u[i]
+        v = cand[p, t, c]
+        if ob - oa > 1:
+            w = cand[1 - p, u, oc] + s_f[i] * (cand[1 - p, u + 1, oc] - cand[1 - p, u, oc])
+        else:
+            w = cand[1 - p, u, oc]
+        if not (np.isfinite(v) and np.isfinite(w)):
+            return np.inf
+        tmp[i] = abs(v - w) / v
+        tmp2[i] = (v - zp[p, t]) / zp[p, t]
+    return _median(tmp, n)
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
