@@ -466,8 +466,10 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                         for c1 in range(nc):
                             if run_fixed[1, m1] >= 0 and c1 != run_fixed[1, m1]:
                                 continue
-                            e = _disagreement(cand, zp, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f,
-                                              n_cmp, n_first, tmp, tmp2)  # fmt: skip
+                            # a pair at or above both the runner-up and AGREE changes
+                            # nothing below: its median is not needed (inf stands for it)
+                            e = _disagreement(cand, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f,
+                                              n_cmp, n_first, max(e2, AGREE), tmp)  # fmt: skip
                             if e < e1:
                                 e2 = e1
                                 e1 = e
@@ -477,7 +479,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                                 e2 = e
                             if e < AGREE:
                                 # the distance from the priors only where it is used
-                                d = abs(_median(tmp2, n_cmp))
+                                d = _prior_distance(cand, zp, c0, c1, s_t, n_cmp, n_first, tmp2)
                                 if d < d1:
                                     d2 = d1
                                     d1 = d
@@ -751,12 +753,11 @@ def _samples(xs, zp, a0, b0, a1, b1, lo, hi, s_t, s_u, s_f):
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
-def _disagreement(cand, zp, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f, n, n_first, tmp, tmp2):
+def _disagreement(cand, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f, n, n_first, bound, tmp):
     """Median relative disagreement of two runs' depths (candidates ``c0``, ``c1``) at
     the ``n`` bands :func:`_samples` chose, against the other run interpolated; inf
-    where a depth is missing.  ``tmp2[:n]`` then holds the relative distances of those
-    depths from their priors (whose median the caller takes only for pairs that
-    agree)."""
+    where a depth is missing, and where the median is at least ``bound`` (told from how
+    many lie below it, without sorting them: most candidate pairs are a line off)."""
     for i in range(n):
         p = 0 if i < n_first else 1
         c, oc = (c0, c1) if p == 0 else (c1, c0)
@@ -771,8 +772,28 @@ def _disagreement(cand, zp, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f, n, n_first, t
         if not (np.isfinite(v) and np.isfinite(w)):
             return np.inf
         tmp[i] = abs(v - w) / v
-        tmp2[i] = (v - zp[p, t]) / zp[p, t]
+    # the middle value (odd n) or the lower of the two middle ones is at least bound when
+    # no more values than those below it lie below bound (the mean of two values at least
+    # bound is too: rounding is monotone)
+    below = 0
+    for i in range(n):
+        if tmp[i] < bound:
+            below += 1
+    if below <= (n >> 1) - (1 - (n & 1)):
+        return np.inf
     return _median(tmp, n)
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _prior_distance(cand, zp, c0, c1, s_t, n, n_first, tmp):
+    """Median relative distance of two runs' depths (candidates ``c0``, ``c1``) at the
+    ``n`` bands :func:`_samples` chose from their priors (absolute value)."""
+    for i in range(n):
+        p = 0 if i < n_first else 1
+        t = s_t[i]
+        v = cand[p, t, c0 if p == 0 else c1]
+        tmp[i] = (v - zp[p, t]) / zp[p, t]
+    return abs(_median(tmp, n))
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
