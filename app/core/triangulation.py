@@ -304,6 +304,8 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
     col_u = np.empty((2, mb))
     col_du = np.empty((2, mb))
     col_known = np.zeros((2, mb), np.bool_)
+    # a band's prior where it names its line (NaN: none)
+    z_named = np.empty(mb)
     for step in range(r1 - r0):
         r = r0 + step if order > 0 else r1 - 1 - step
         i = min(r // k_rows, gh - 1)
@@ -330,6 +332,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                 zp[p, n] = np.nan
                 col_known[p, n] = False
                 fresh[p, n] = not vertical
+                z_named[n] = np.nan
                 if vertical and line[p, r, q] >= 0:
                     ell[p, n] = line[p, r, q]
                     zp[p, n] = z[p, r, q]
@@ -337,23 +340,34 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                     j = min(max(int(round((x - off) / stride)), 0), gw - 1)
                     zf = prior[i, j]
                     if np.isfinite(zf) and near <= zf <= far:
-                        u, du, pz = _column(pp, rx, ry, zf)
-                        if pz > 0.0:
-                            ell[p, n] = _line_coordinate(lit[p], n_lit[p], u)
-                            zp[p, n] = zf
-                            # kept: the candidates are linearised at this prior
-                            col_u[p, n] = u
-                            col_du[p, n] = du
-                            col_known[p, n] = True
-                    if vertical and not np.isfinite(ell[p, n]) and 0 <= o < n_rows:
-                        # the same line in the row before: its decided index
-                        q2, link_at = _same_line(bands, counts, line, p, o, x, link_at)
-                        if q2 >= 0:
-                            ell[p, n] = line[p, o, q2]
-                            zp[p, n] = z[p, o, q2]
-                            fresh[p, n] = True
+                        z_named[n] = zf
                 n += 1
             n_bands[p] = n
+            # the projector columns at the priors, then their lines, each in a loop of its
+            # own: the bands' columns are independent, and a loop of nothing else lets
+            # the processor overlap them (interleaved with the searches' and the first
+            # loop's unpredictable branches, each waited for its long chain of divisions)
+            for t in range(n):
+                if np.isfinite(z_named[t]):
+                    u, du, pz = _column(pp, rxy[p, t, 0], rxy[p, t, 1], z_named[t])
+                    if pz > 0.0:
+                        zp[p, t] = z_named[t]
+                        # kept: the candidates are linearised at this prior
+                        col_u[p, t] = u
+                        col_du[p, t] = du
+                        col_known[p, t] = True
+            for t in range(n):
+                if col_known[p, t]:
+                    ell[p, t] = _line_coordinate(lit[p], n_lit[p], col_u[p, t])
+            if vertical and 0 <= o < n_rows:
+                for t in range(n):
+                    if line[p, r, slot[p, t]] < 0 and not np.isfinite(ell[p, t]):
+                        # the same line in the row before: its decided index
+                        q2, link_at = _same_line(bands, counts, line, p, o, xs[p, t], link_at)
+                        if q2 >= 0:
+                            ell[p, t] = line[p, o, q2]
+                            zp[p, t] = z[p, o, q2]
+                            fresh[p, t] = True
         for sweep in range(2):
             for p in range(2):
                 pp = projs[proj_of[p]]
