@@ -231,8 +231,8 @@ def test_a_chunk_starts_from_the_frame_ahead_of_it(tmp_path):
     (:func:`lightflow.app.core.flow.moved_lines`): a chunk processes the good frame ahead
     of it first (not written), seeded with the state before that frame, and equals a
     sequential replay.  Two balls at 5 ms on an 800x600 rig, whose third frame reads
-    differently without the second (checked here, so that the test would see a chunk
-    that skipped it)."""
+    differently after another frame than the second (checked here, so that the test
+    would see a chunk that skipped it)."""
     from lightflow.app.batch import chunk_task, state_task
 
     rig = load_rig(RIG_FILE).scaled(0.5)
