@@ -83,6 +83,7 @@ from .bands import (
     nearest_partners,
     row_signals,
 )
+from .medians import median_in_place
 from .threads import run_rows
 
 #: output fields of :func:`measure_stretch` / :func:`measure_stretches`
@@ -822,24 +823,6 @@ def _tight(band, line_per_px, blur_a, blur_b, gap_sigmas):
     return b - band[F_LENGTH] - line_per_px * b < gap_sigmas * sigma
 
 
-@nb.njit(cache=True, error_model="numpy", **_INTERNAL)
-def _median(values):
-    """``np.median`` of a short array (sorted in place by insertion: numba's median
-    compiles a partition kernel, a second of a first run)."""
-    n = values.shape[0]
-    for i in range(n):
-        if np.isnan(values[i]):
-            return np.nan  # as np.median
-    for i in range(1, n):
-        v = values[i]
-        j = i - 1
-        while j >= 0 and values[j] > v:
-            values[j + 1] = values[j]
-            j -= 1
-        values[j + 1] = v
-    return values[n // 2] if n % 2 else 0.5 * (values[n // 2 - 1] + values[n // 2])
-
-
 @nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
 def _prepare_runs(bands, runs, m, tol, width, out):
     """Per run of one pattern: ``out[q] = (B, lo, hi, floor, width over B, floor spread)``, or
@@ -854,7 +837,7 @@ def _prepare_runs(bands, runs, m, tol, width, out):
         d = np.empty(n)
         for i in range(n):
             d[i] = bands[r, k0 + i + 1, F_CENTRE] - bands[r, k0 + i, F_CENTRE]
-        b = _median(d)
+        b = median_in_place(d, n)
         out[q, 0] = np.nan
         if not b > 2.0:
             continue
@@ -876,7 +859,7 @@ def _prepare_runs(bands, runs, m, tol, width, out):
         out[q, 2] = min(float(width), math.ceil(bands[r, k1, F_CENTRE] + 0.5 * b))
         # NaN floor or width: that reference is missing (then the run stays rejected)
         out[q, 3] = floor if np.isfinite(floor) else np.nan
-        out[q, 4] = _median(lengths) / b
+        out[q, 4] = median_in_place(lengths, n + 1) / b
         out[q, 5] = top - floor if np.isfinite(floor) else np.nan
 
 
@@ -1442,7 +1425,7 @@ def _run_height(bands, p, run):
     heights = np.empty(n)
     for i in range(n):
         heights[i] = bands[p, run[0], run[1] + i, F_HEIGHT]
-    return _median(heights)
+    return median_in_place(heights, n)
 
 
 @nb.njit(cache=True, error_model="numpy", **_INTERNAL)

@@ -37,6 +37,7 @@ from .bands import BAND_IRREGULAR, F_CENTRE, F_END, F_START, F_VALID
 from .depth_model import DepthRange, proj_u_du, projector_params
 from .geometry import LENS_COEFFICIENTS, undistort_pixels
 from .kernel_options import INTERNAL, NO_CFUNC
+from .medians import median_in_place
 from .patterns import line_columns
 from .rig import Rig
 from .snapping import column_direction
@@ -428,7 +429,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                         continue
                     if cnt == 0 or not active:
                         continue
-                    kc = int(round(_median(prio, cnt)))
+                    kc = int(round(median_in_place(prio, cnt)))
                     run_k[p, m] = kc
                     z_run = zs / cnt
                     for t in range(a, b):
@@ -795,7 +796,7 @@ def _disagreement(cand, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f, n, n_first, bound
             below += 1
     if below <= (n >> 1) - (1 - (n & 1)):
         return np.inf
-    return _median(tmp, n)
+    return median_in_place(tmp, n)
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
@@ -807,25 +808,7 @@ def _prior_distance(cand, zp, c0, c1, s_t, n, n_first, tmp):
         t = s_t[i]
         v = cand[p, t, c0 if p == 0 else c1]
         tmp[i] = (v - zp[p, t]) / zp[p, t]
-    return abs(_median(tmp, n))
-
-
-@nb.njit(cache=True, error_model="numpy", **INTERNAL)
-def _median(values, n):
-    """``np.median(values[:n])`` for ``n >= 1`` values without NaN, sorting them in place
-    (by insertion: a handful of values).  The same bits: numba's median selects the same
-    middle value, or the same two and returns their mean as ``(a + b) / 2``; it copies the
-    values first, an allocation per call, 25 candidate pairs per pair of runs.  The
-    callers' values are never NaN (ratios of finite depths; finite line indices)."""
-    for i in range(1, n):
-        v = values[i]
-        j = i - 1
-        while j >= 0 and values[j] > v:
-            values[j + 1] = values[j]
-            j -= 1
-        values[j + 1] = v
-    h = n >> 1
-    return values[h] if n & 1 else (values[h - 1] + values[h]) / 2
+    return abs(median_in_place(tmp, n))
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
