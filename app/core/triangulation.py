@@ -196,13 +196,14 @@ class LineTriangulation:
         run_rows(_decide_rows, n_rows, *args, 0, 1)
         _decide_rows(*args, 1, 1, 0, n_rows)
         _decide_rows(*args, 1, -1, 0, n_rows)
-        # the runs carried on past their ends (rows on a thread per core)
-        run_rows(_extend_rows, n_rows, bands, counts, self.rays, self.projs, self.proj_of,
-                 self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid)
         if still is None:
             still = np.zeros(moving.shape, np.bool_)
         seeds = moving & (_share(moving, SEED_WINDOW) >= 0.5)
         barrier = still | (_share(still, STILL_WINDOW) >= 0.5)
+        # the runs carried on past their ends (rows on a thread per core)
+        run_rows(_extend_rows, n_rows, bands, counts, self.rays, self.projs, self.proj_of,
+                 self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid,
+                 barrier, rows_per_cell, stride)  # fmt: skip
         on_moving = _moving_bands(bands, counts, line, z, rows_per_cell, stride, seeds,
                                   barrier, HOPS)  # fmt: skip
         return _cells(bands, counts, line, z, resid, rows_per_cell, stride, moving, on_moving,
@@ -562,7 +563,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
 
 @nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, near, far, line, z,
-                 resid, r0, r1):  # fmt: skip
+                 resid, barrier, k_rows, stride, r0, r1):  # fmt: skip
     """Carry the decided runs of rows ``r0 .. r1`` outward, one band at a time.
 
     An undecided band next to the end of a decided run (two bands or more, its spacing
@@ -571,8 +572,14 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
     it (:func:`_other_depth`): a ball's limb, whose cut and faint bands have no flow to
     name their lines.  The other pattern is what tells a wrong line apart: past a depth
     step, the next line of each pattern gives a smooth depth, but not the same one.
+    Where the other pattern has no such bands (it is faint or cut there), the run's own
+    depths continued decide (the same tolerance), on cells off ``barrier`` only: past a
+    blade's end a fan's still hub continues the blade's depth.
     """
+    gh, gw = barrier.shape
+    off = 0.5 * (stride - 1)
     for r in range(r0, r1):
+        i = min(r // k_rows, gh - 1)
         for _ in range(EXTEND_STEPS):
             changed = False
             for p in range(2):
@@ -613,6 +620,16 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                         if not (np.isfinite(v) and abs(v - z[p, r, q1]) <= STEP * v):
                             continue
                         w = _other_depth(bands, counts, line, z, 1 - p, r, x, direction[1 - p])
+                        if not np.isfinite(w):
+                            # none: the run's own next depth, the parabola through its last
+                            # three lines, off the still cells
+                            q3 = q + 3 * side
+                            j = min(max(int(round((x - off) / stride)), 0), gw - 1)
+                            if not (0 <= q3 < n and line[p, r, q3] == k1 + 2 * side * direction[p]
+                                    and not barrier[i, j]):  # fmt: skip
+                                continue
+                            x3 = bands[p, r, q3, F_CENTRE]
+                            w = _parabola(x, x1, x2, x3, z[p, r, q1], z[p, r, q2], z[p, r, q3])
                         if not abs(v - w) < EXTEND_AGREE * v:  # false for NaN
                             continue
                         line[p, r, q] = k
@@ -651,11 +668,16 @@ def _other_depth(bands, counts, line, z, p, r, x, direction):
         if d >= dist:
             continue
         dist = d
-        za, zb, zc = z[p, r, q], z[p, r, q + 1], z[p, r, q + 2]
-        best = (za * (x - xb) * (x - xc) / ((xa - xb) * (xa - xc))
-                + zb * (x - xa) * (x - xc) / ((xb - xa) * (xb - xc))
-                + zc * (x - xa) * (x - xb) / ((xc - xa) * (xc - xb)))  # fmt: skip
+        best = _parabola(x, xa, xb, xc, z[p, r, q], z[p, r, q + 1], z[p, r, q + 2])
     return best
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _parabola(x, xa, xb, xc, za, zb, zc):
+    """The parabola through ``(xa, za)``, ``(xb, zb)`` and ``(xc, zc)`` at ``x``."""
+    return (za * (x - xb) * (x - xc) / ((xa - xb) * (xa - xc))
+            + zb * (x - xa) * (x - xc) / ((xb - xa) * (xb - xc))
+            + zc * (x - xa) * (x - xb) / ((xc - xa) * (xc - xb)))  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
@@ -1037,9 +1059,8 @@ def warm_up() -> None:
         _decide_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), prior,
                      1, 4, 0.3, 3.0, line, z, resid, vertical, order, 0, 2)  # fmt: skip
     _extend_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), 0.3, 3.0,
-                 line, z, resid, 0, 2)  # fmt: skip
+                 line, z, resid, np.zeros((2, 4), np.bool_), 1, 4, 0, 2)  # fmt: skip
     grid = np.full((2, 4), np.nan, np.float32)  # the pipeline's depth and error grids
     moving = np.ones((2, 4), np.bool_)
     on = _moving_bands(bands, counts, line, z, 1, 4, moving, ~moving, HOPS)
     _cells(bands, counts, line, z, resid, 1, 4, moving, on, grid, grid.copy())
-
