@@ -586,7 +586,8 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
     """Carry the decided runs of rows ``r0 .. r1`` outward, one band at a time.
 
     An undecided band next to the end of a decided run (two bands or more, its spacing
-    changing by less than :data:`RUN_RATIO`) takes the run's next line if the depth on
+    changing by less than :data:`RUN_RATIO`; or a decided band alone, tuning rigs: +0-1
+    point of the balls' coverage) takes the run's next line if the depth on
     it agrees within :data:`EXTEND_AGREE` with the other pattern's decided bands around
     it (:func:`_other_depth`): a ball's limb, whose cut and faint bands have no flow to
     name their lines.  The other pattern is what tells a wrong line apart: past a depth
@@ -621,17 +622,19 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                     for side in (-1, 1):
                         q1 = q + side  # the run's end
                         q2 = q + 2 * side
-                        if not (0 <= q1 < n and 0 <= q2 < n):
+                        if not 0 <= q1 < n:
                             continue
                         k1 = line[p, r, q1]
-                        k2 = line[p, r, q2]
-                        if k1 < 0 or k2 != k1 + side * direction[p]:
+                        if k1 < 0:
                             continue
+                        # a run of two bands or more; or one decided band alone, whose next
+                        # line the other pattern's depth alone then checks
+                        alone = not (0 <= q2 < n and line[p, r, q2] == k1 + side * direction[p])
                         x1 = bands[p, r, q1, F_CENTRE]
-                        x2 = bands[p, r, q2, F_CENTRE]
+                        x2 = bands[p, r, q2, F_CENTRE] if not alone else np.nan
                         d = abs(x - x1)
                         dp = abs(x1 - x2)
-                        if not (dp / RUN_RATIO < d < dp * RUN_RATIO):
+                        if not alone and not (dp / RUN_RATIO < d < dp * RUN_RATIO):
                             continue
                         k = k1 - side * direction[p]
                         if not 0 <= k < n_lit[p]:
@@ -646,6 +649,8 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                         w = _other_depth(bands, counts, line, z, 1 - p, r, x, direction[1 - p])
                         hop = 0
                         if not np.isfinite(w):
+                            if alone:
+                                continue
                             # none: the run's own next depth, the parabola through its last
                             # three lines, off the still cells
                             q3 = q + 3 * side
