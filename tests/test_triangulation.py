@@ -206,52 +206,9 @@ def test_runs_are_carried_on_to_a_limb_with_no_flow():
           f"x 1030-1070 {have[:, right].mean():.1%}; "
           f"reach x {x[have.any(axis=0)].min():.0f}-{x[have.any(axis=0)].max():.0f}")
     assert have[:, left].mean() > 0.9 and have[:, right].mean() > 0.8
-    # linear between bands on a curved surface, and along the last two bands for half a
-    # spacing past the last: within a few millimetres at the steep limb (measured: median
-    # 0.03 mm, max 3.1 mm, 65 px past the last band at x 1154, where the depth bends)
+    # linear between bands on a curved surface: within a millimetre near the limb
+    # (measured: median 0.03 mm, max 0.96 mm)
     err = np.abs(depth[have] - truth[have])
     print(f"error: median {np.median(err) * 1e3:.3f} mm, max {err.max() * 1e3:.2f} mm")
-    assert np.median(err) < 1e-4 and np.max(err) < 3.5e-3
+    assert np.median(err) < 1e-4 and np.max(err) < 1.5e-3
     assert not have[:, np.abs(x - 800.0) > 600.0].any()
-
-
-def test_runs_are_carried_on_by_their_own_depths_where_the_other_pattern_is_faint():
-    """The bulging cylinder as above, the flows' depth known on its middle only, and
-    pattern 1 faint beyond x 1040 (no bands at all): pattern 0's runs are carried on
-    past it by their own depths, the parabola through their last three lines, to
-    bands the flow never reached, with their exact depths; never onto the wall; and
-    not onto cells whose lines were seen standing still (a fan's hub past a blade)."""
-    def bulge(x):
-        u = np.clip((x - 800.0) / 600.0, -1.0, 1.0)
-        return np.where(np.abs(x - 800.0) < 600.0, 0.80 - 0.1 * np.sqrt(1.0 - u * u), 1.1)
-
-    rig, tri, bands, counts, grid = setup(depth_of_x=bulge)
-    centre = bands[1, :, :, F_CENTRE]
-    centre[centre > 1040.0] = np.nan
-    truth = cell_truth(grid, bulge)
-    x = np.arange(grid[1]) * STRIDE + 0.5 * (STRIDE - 1)
-    prior = np.where(np.abs(x - 800.0) < 200.0, truth, np.nan).astype(np.float32)
-
-    def depth_with(still):
-        depth = np.full(grid, np.nan, np.float32)
-        std = np.full(grid, np.nan, np.float32)
-        tri.refine(bands, counts, 1, STRIDE, prior, np.ones(grid, bool), depth, std,
-                   still=still)  # fmt: skip
-        return depth
-
-    depth = depth_with(None)
-    have = np.isfinite(depth)
-    right = (x > 1060.0) & (x < 1120.0)  # pattern 0 only, its runs carried on alone
-    reach = x[have.any(axis=0)].max()
-    err = np.abs(depth[have] - truth[have])
-    print(f"\ncells with depth at x 1060-1120: {have[:, right].mean():.1%}; reach x {reach:.0f}; "
-          f"error median {np.median(err) * 1e3:.3f} mm, max {err.max() * 1e3:.2f} mm")
-    assert have[:, right].mean() > 0.9
-    assert np.median(err) < 1e-4 and np.max(err) < 3.5e-3  # as above
-    assert not have[:, np.abs(x - 800.0) > 600.0].any()
-    # the cells past x 1040 seen standing still: pattern 0's band at x 1154 is not
-    # carried onto (its band at x 1039 still reaches half its spacing, to x 1090)
-    still = np.zeros(grid, bool)
-    still[:, x > 1040.0] = True
-    depth = depth_with(still)
-    assert not np.isfinite(depth[:, x > 1100.0]).any()

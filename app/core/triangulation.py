@@ -112,13 +112,6 @@ EXTENT = 1.0
 EXTEND_AGREE = 0.003
 #: ... by at most this many bands on each side
 EXTEND_STEPS = 6
-#: ... of which at most this many where the other pattern has no decided bands near and
-#: the run's own depths decide (tuning rigs: 1 band gained the balls 1-3 points of
-#: coverage, 2 bands 1-5 points; unlimited, the end of a fan's blade was carried on along
-#: the faint wall beside it, whose bands on the blade's next lines give a smooth depth:
-#: the unseen-rig fan of the end-to-end tests 1.2 -> 3.5 % of its depth off the blades;
-#: 1.6 % with 1 band, 1.9 % with 2)
-OWN_STEPS = 1
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
 
@@ -212,14 +205,13 @@ class LineTriangulation:
         run_rows(_decide_rows, n_rows, *args, 0, 1)
         _decide_rows(*args, 1, 1, 0, n_rows)
         _decide_rows(*args, 1, -1, 0, n_rows)
+        # the runs carried on past their ends (rows on a thread per core)
+        run_rows(_extend_rows, n_rows, bands, counts, self.rays, self.projs, self.proj_of,
+                 self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid)
         if still is None:
             still = np.zeros(moving.shape, np.bool_)
         seeds = moving & (_share(moving, SEED_WINDOW) >= 0.5)
         barrier = still | (_share(still, STILL_WINDOW) >= 0.5)
-        # the runs carried on past their ends (rows on a thread per core)
-        run_rows(_extend_rows, n_rows, bands, counts, self.rays, self.projs, self.proj_of,
-                 self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid,
-                 barrier, rows_per_cell, stride)  # fmt: skip
         on_moving = _moving_bands(bands, counts, line, z, rows_per_cell, stride, seeds,
                                   barrier, HOPS)  # fmt: skip
         return _cells(bands, counts, line, z, resid, rows_per_cell, stride, moving, on_moving,
@@ -582,7 +574,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
 
 @nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
 def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, near, far, line, z,
-                 resid, barrier, k_rows, stride, r0, r1):  # fmt: skip
+                 resid, r0, r1):  # fmt: skip
     """Carry the decided runs of rows ``r0 .. r1`` outward, one band at a time.
 
     An undecided band next to the end of a decided run (two bands or more, its spacing
@@ -591,20 +583,13 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
     it agrees within :data:`EXTEND_AGREE` with the other pattern's decided bands around
     it (:func:`_other_depth`): a ball's limb, whose cut and faint bands have no flow to
     name their lines.  The other pattern is what tells a wrong line apart: past a depth
-    step, the next line of each pattern gives a smooth depth, but not the same one.
-    Where the other pattern has no such bands (it is faint or cut there), the run's own
-    depths continued decide (the same tolerance), for :data:`OWN_STEPS` bands past those
-    the other pattern checked, and on cells off ``barrier`` only: a smooth depth alone
-    does not tell a wrong line apart for long (past a blade's end, the wall's bands on
-    its next lines), and a fan's still hub continues its blade's depth.
+    step, the next line of each pattern gives a smooth depth, but not the same one (the
+    run's own depths continued do not: past a blade's end, the faint wall's or the hub's
+    bands on its next lines continue its depth; development fans 43-48: 0.0-2.7 ->
+    0.7-4.4 % of the depth off the blades, carried one band so, for 1-3 points of the
+    balls' coverage).
     """
-    gh, gw = barrier.shape
-    off = 0.5 * (stride - 1)
-    # per band of the row: how many bands its line was carried on by the run's depths alone
-    hops = np.zeros((2, bands.shape[2]), np.int64)
     for r in range(r0, r1):
-        i = min(r // k_rows, gh - 1)
-        hops[:] = 0
         for _ in range(EXTEND_STEPS):
             changed = False
             for p in range(2):
@@ -627,15 +612,14 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                         k1 = line[p, r, q1]
                         if k1 < 0:
                             continue
-                        # a run of two bands or more; or one decided band alone, whose next
-                        # line the other pattern's depth alone then checks
+                        # a run of two bands or more, or one decided band alone
                         alone = not (0 <= q2 < n and line[p, r, q2] == k1 + side * direction[p])
                         x1 = bands[p, r, q1, F_CENTRE]
-                        x2 = bands[p, r, q2, F_CENTRE] if not alone else np.nan
-                        d = abs(x - x1)
-                        dp = abs(x1 - x2)
-                        if not alone and not (dp / RUN_RATIO < d < dp * RUN_RATIO):
-                            continue
+                        if not alone:
+                            d = abs(x - x1)
+                            dp = abs(x1 - bands[p, r, q2, F_CENTRE])
+                            if not dp / RUN_RATIO < d < dp * RUN_RATIO:
+                                continue
                         k = k1 - side * direction[p]
                         if not 0 <= k < n_lit[p]:
                             continue
@@ -647,28 +631,11 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                         if not (np.isfinite(v) and abs(v - z[p, r, q1]) <= STEP * v):
                             continue
                         w = _other_depth(bands, counts, line, z, 1 - p, r, x, direction[1 - p])
-                        hop = 0
-                        if not np.isfinite(w):
-                            if alone:
-                                continue
-                            # none: the run's own next depth, the parabola through its last
-                            # three lines, off the still cells
-                            q3 = q + 3 * side
-                            j = min(max(int(round((x - off) / stride)), 0), gw - 1)
-                            if not (0 <= q3 < n and line[p, r, q3] == k1 + 2 * side * direction[p]
-                                    and not barrier[i, j]):  # fmt: skip
-                                continue
-                            x3 = bands[p, r, q3, F_CENTRE]
-                            w = _parabola(x, x1, x2, x3, z[p, r, q1], z[p, r, q2], z[p, r, q3])
-                            if hops[p, q1] >= OWN_STEPS:
-                                continue
-                            hop = hops[p, q1] + 1
                         if not abs(v - w) < EXTEND_AGREE * v:  # false for NaN
                             continue
                         line[p, r, q] = k
                         z[p, r, q] = v
                         resid[p, r, q] = abs(v - w)
-                        hops[p, q] = hop
                         changed = True
                         break
             if not changed:
@@ -702,16 +669,11 @@ def _other_depth(bands, counts, line, z, p, r, x, direction):
         if d >= dist:
             continue
         dist = d
-        best = _parabola(x, xa, xb, xc, z[p, r, q], z[p, r, q + 1], z[p, r, q + 2])
+        za, zb, zc = z[p, r, q], z[p, r, q + 1], z[p, r, q + 2]
+        best = (za * (x - xb) * (x - xc) / ((xa - xb) * (xa - xc))
+                + zb * (x - xa) * (x - xc) / ((xb - xa) * (xb - xc))
+                + zc * (x - xa) * (x - xb) / ((xc - xa) * (xc - xb)))  # fmt: skip
     return best
-
-
-@nb.njit(cache=True, error_model="numpy", **INTERNAL)
-def _parabola(x, xa, xb, xc, za, zb, zc):
-    """The parabola through ``(xa, za)``, ``(xb, zb)`` and ``(xc, zc)`` at ``x``."""
-    return (za * (x - xb) * (x - xc) / ((xa - xb) * (xa - xc))
-            + zb * (x - xa) * (x - xc) / ((xb - xa) * (xb - xc))
-            + zc * (x - xa) * (x - xb) / ((xc - xa) * (xc - xb)))  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
@@ -1093,7 +1055,7 @@ def warm_up() -> None:
         _decide_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), prior,
                      1, 4, 0.3, 3.0, line, z, resid, vertical, order, 0, 2)  # fmt: skip
     _extend_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), 0.3, 3.0,
-                 line, z, resid, np.zeros((2, 4), np.bool_), 1, 4, 0, 2)  # fmt: skip
+                 line, z, resid, 0, 2)  # fmt: skip
     grid = np.full((2, 4), np.nan, np.float32)  # the pipeline's depth and error grids
     moving = np.ones((2, 4), np.bool_)
     on = _moving_bands(bands, counts, line, z, 1, 4, moving, ~moving, HOPS)
