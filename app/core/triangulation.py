@@ -61,8 +61,8 @@ PRIOR_GAP = 0.04
 #: where neither rule decides, a pair is still taken when it both agrees best, within
 #: :data:`BOTH_AGREE` of the depth and :data:`BOTH_MARGIN` times better than the next
 #: pair, and is the nearer to the priors by :data:`BOTH_GAP` (tuning rigs: the fans' p90
-#: 9-19 -> 1-16 mm, the balls' +0-1 points of coverage; development rigs 40-42: the
-#: balls' p90 down by 1-14 mm.  Without BOTH_AGREE, a ball whose bands' centres were
+#: 9-19 -> 1-16 mm, the balls' +0-1 points of coverage; development rigs 40-42: 8 balls'
+#: p90 down by 0.1-14 mm.  Without BOTH_AGREE, a ball whose bands' centres were
 #: biased took a wrong pair agreeing at 0.37 %, where right ones agree at 0.03-0.08 %)
 BOTH_AGREE = 0.0015
 BOTH_MARGIN = 2.0
