@@ -10,39 +10,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lit_surface import surface_bands
+from lit_surface import STRIDE, cell_x, refine, surface_bands, triangulation
 
 from lightflow.app.core.bands import F_CENTRE
-from lightflow.app.core.depth_model import DepthRange
 from lightflow.app.core.rig import load_rig
-from lightflow.app.core.triangulation import LineTriangulation
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
-STRIDE = 4
 
 
 def setup(rig_name="two-projector.json", depth_of_x=lambda x: np.full(x.shape, 0.75)):
     rig = load_rig(RIGS / rig_name)
-    gh = rig.camera.height // STRIDE
-    row_y = np.arange(gh) * STRIDE + 1
-    tri = LineTriangulation(rig, row_y, DepthRange())
+    tri, row_y, grid = triangulation(rig)
     bands, counts = surface_bands(rig, tri, row_y, depth_of_x)
-    grid = (gh, rig.camera.width // STRIDE)
     return rig, tri, bands, counts, grid
 
 
-def refine(tri, bands, counts, grid, prior_depth, moving=None):
-    prior = np.full(grid, prior_depth, np.float32)
-    depth = np.full(grid, np.nan, np.float32)
-    std = np.full(grid, np.nan, np.float32)
-    moving = np.ones(grid, bool) if moving is None else moving
-    n = tri.refine(bands, counts, 1, STRIDE, prior, moving, depth, std)
-    return n, depth, std
-
-
 def cell_truth(grid, depth_of_x):
-    x = np.arange(grid[1]) * STRIDE + 0.5 * (STRIDE - 1)
-    return np.broadcast_to(depth_of_x(x), grid)
+    return np.broadcast_to(depth_of_x(cell_x(grid)), grid)
 
 
 @pytest.mark.parametrize("rig_name", ["two-projector.json", "two-projector-distorted.json",
@@ -128,7 +112,7 @@ def test_depth_reaches_past_the_moving_cells_on_their_surface_only():
     prior = cell_truth(grid, step).astype(np.float32)
     moving = np.zeros(grid, bool)
     moving[:, 100:150] = True  # x 400-600
-    x = np.arange(grid[1]) * STRIDE + 0.5 * (STRIDE - 1)
+    x = cell_x(grid)
 
     def depth_with(still):
         depth = np.full(grid, np.nan, np.float32)
@@ -167,7 +151,7 @@ def test_runs_are_carried_on_to_a_limb_with_no_flow():
     first = np.argmax(centre > 1040.0, axis=1)
     centre[np.arange(len(first)), first] = np.nan
     truth = cell_truth(grid, bulge)
-    x = np.arange(grid[1]) * STRIDE + 0.5 * (STRIDE - 1)
+    x = cell_x(grid)
     prior = np.where(np.abs(x - 800.0) < 200.0, truth, np.nan).astype(np.float32)
     depth = np.full(grid, np.nan, np.float32)
     std = np.full(grid, np.nan, np.float32)

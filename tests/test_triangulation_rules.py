@@ -22,36 +22,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lit_surface import surface_bands
+from lit_surface import cell_x, refine, surface_bands, triangulation
 
 from lightflow.app.core.bands import F_CENTRE
-from lightflow.app.core.depth_model import DepthRange
 from lightflow.app.core.rig import load_rig, rig_from_dict
-from lightflow.app.core.triangulation import LineTriangulation
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
-STRIDE = 4
 Z = 0.75
-
-
-def triangulation(rig):
-    gh = rig.camera.height // STRIDE
-    row_y = np.arange(gh) * STRIDE + 1
-    grid = (gh, rig.camera.width // STRIDE)
-    return LineTriangulation(rig, row_y, DepthRange()), row_y, grid
-
-
-def refine(tri, bands, counts, grid, prior_depth):
-    """Every cell moving, one prior depth everywhere: ``(cells written, depth grid)``."""
-    prior = np.full(grid, prior_depth, np.float32)
-    depth = np.full(grid, np.nan, np.float32)
-    std = np.full(grid, np.nan, np.float32)
-    n = tri.refine(bands, counts, 1, STRIDE, prior, np.ones(grid, bool), depth, std)
-    return n, depth
-
-
-def cell_x(grid):
-    return np.arange(grid[1]) * STRIDE + 0.5 * (STRIDE - 1)
 
 
 # ---------------------------------------------------------------- the BOTH rule
@@ -105,7 +82,7 @@ def test_both_rule_takes_the_pair_that_agrees_best_and_is_nearest_the_prior(near
     cell of the board gets its exact depth.  (Measured: 43800 cells, 0.0001 mm off at
     most; without the BOTH rule, 0 cells.)"""
     tri, bands, counts, grid = near_half_pitch
-    n, depth = refine(tri, bands, counts, grid, Z * 1.025)
+    n, depth, _ = refine(tri, bands, counts, grid, Z * 1.025)
     have = np.isfinite(depth)
     on_board = np.abs(cell_x(grid) - 800.0) < 280.0
     err = np.abs(depth[have] - Z)
@@ -121,7 +98,7 @@ def test_both_rule_takes_no_pair_nearer_the_prior_that_agrees_worse(near_half_pi
     taking the nearer pair would put the board 55 mm too far.  (Measured: 0 cells;
     without the 'agrees best' condition, 43800 cells 55-64 mm off.)"""
     tri, bands, counts, grid = near_half_pitch
-    n, depth = refine(tri, bands, counts, grid, Z * 1.05)
+    n, depth, _ = refine(tri, bands, counts, grid, Z * 1.05)
     assert n == 0 and not np.isfinite(depth).any()
 
 
@@ -137,7 +114,7 @@ def test_both_rule_takes_no_pair_that_agrees_only_loosely():
     tri, row_y, grid = triangulation(rig)
     bands, counts = surface_bands(rig, tri, row_y, patch)
     bands[1, :, :, F_CENTRE] += 4.6
-    n, depth = refine(tri, bands, counts, grid, Z)
+    n, depth, _ = refine(tri, bands, counts, grid, Z)
     assert n == 0 and not np.isfinite(depth).any()
 
 
@@ -179,7 +156,7 @@ def test_a_lone_decided_band_passes_its_next_line_on():
     0.0001 mm off, to x 1366 in every row; without the lone band's carry, 8700, to x
     1310.)"""
     tri, bands, counts, grid, xb = lone_band_case(board)
-    n, depth = refine(tri, bands, counts, grid, Z)
+    n, depth, _ = refine(tri, bands, counts, grid, Z)
     have = np.isfinite(depth)
     x = cell_x(grid)
     print(f"\n{n} cells, x {x[have.any(axis=0)].min():.0f}-{x[have.any(axis=0)].max():.0f}")
@@ -199,7 +176,7 @@ def test_a_lone_band_is_carried_no_further_onto_a_wall():
         return np.where(x < 1380.0, Z, 0.9)
 
     tri, bands, counts, grid, xb = lone_band_case(board_and_wall)
-    n, depth = refine(tri, bands, counts, grid, Z)
+    n, depth, _ = refine(tri, bands, counts, grid, Z)
     have = np.isfinite(depth)
     x = cell_x(grid)
     print(f"\n{n} cells, to x {x[have.any(axis=0)].max():.0f}")
@@ -219,7 +196,7 @@ def test_a_lone_band_is_not_carried_where_the_other_pattern_disagrees():
     rows = np.arange(grid[0])
     b = np.nanargmin(np.abs(bands[0, :, :, F_CENTRE] - xb[:, None]), axis=1)
     bands[0, rows, b, F_CENTRE] += 6.0
-    n, depth = refine(tri, bands, counts, grid, Z)
+    n, depth, _ = refine(tri, bands, counts, grid, Z)
     have = np.isfinite(depth)
     x = cell_x(grid)
     print(f"\n{n} cells, to x {x[have.any(axis=0)].max():.0f}")
