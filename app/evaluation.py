@@ -321,8 +321,9 @@ def evaluate_frame(
         ys, xs = np.nonzero(target)
         gh, gw = causes_grid.shape
         codes = causes_grid[np.minimum(ys // stride, gh - 1), np.minimum(xs // stride, gw - 1)]
-        # the grid says "depth" where the full-resolution map may not (NaN spreads in the
-        # upsampling): count the target pixels by the full-resolution depth
+        # the grid says "depth" where the full-resolution map may not (a cell's depth
+        # covers only part of it beside cells without): count the target pixels by the
+        # full-resolution depth
         codes = np.where(has_depth[ys, xs], 0, np.where(codes == 0, 255, codes))
         counted = count_causes(codes[codes != 255])
         counted[0] = n_covered

@@ -8,6 +8,7 @@ the band nearest to the pixel along its row; the flow stage adds its own.
 
 from __future__ import annotations
 
+import cv2
 import numba as nb
 import numpy as np
 
@@ -39,6 +40,10 @@ BLUR_UNKNOWN = 8
 INCONSISTENT = 9
 UNCERTAIN = 10
 DEPTH_RANGE = 11
+LONE = 12
+
+#: fewest of a depth's 8 neighbouring cells that must have a depth too (see :func:`lone_cells`)
+MIN_NEIGHBOURS = 4
 
 #: (name, what it means) per cause code, in code order
 CAUSES = (
@@ -55,15 +60,16 @@ CAUSES = (
     ("inconsistent", "the sweep disagrees with the sweeps around it"),
     ("uncertain", "the predicted depth error is too large (over max_depth_std of the depth)"),
     ("out of depth range", "the flow ratio lies outside the rig's working range"),
+    ("lone", "fewer than half of the cells around it have a depth: a stray measurement"),
 )  # fmt: skip
 CAUSE_NAMES = tuple(name for name, _ in CAUSES)
 #: RGB colour of each cause, as the Rerun view and `lightflow eval --pictures` draw it
 #: (code order: depth, no lines, faint, cut, overlap,
 #: irregular, static, out of model range, blur not fitted, inconsistent, uncertain,
-#: out of depth range)
+#: out of depth range, lone)
 CAUSE_COLOURS = ((0, 200, 0), (40, 40, 40), (120, 120, 200), (230, 120, 30), (200, 0, 200),
                  (230, 200, 0), (90, 90, 90), (255, 0, 0), (0, 200, 200), (160, 60, 0),
-                 (255, 130, 180), (255, 255, 255))  # fmt: skip
+                 (255, 130, 180), (255, 255, 255), (0, 110, 255))  # fmt: skip
 
 
 
@@ -202,6 +208,28 @@ def _distance(a, b, x):
     if x > b:
         return x - b
     return 0.0
+
+
+def lone_cells(depth: np.ndarray) -> np.ndarray:
+    """The grid cells whose depth fewer than :data:`MIN_NEIGHBOURS` of their 8 neighbours share.
+
+    A surface's depth covers neighbouring cells; a lone cell, or a strip one row tall, is
+    a stray measurement (on a static wall: still lines whose widths noise pushed over a
+    moving line's), and showed as stray points in the 3D view.
+
+    Parameters
+    ----------
+    depth : numpy.ndarray
+        ``(h, w)`` depth on the analysis grid, NaN where none.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w)`` bool: cells with a depth and too few neighbours with one.
+    """
+    valid = np.isfinite(depth).astype(np.float32)
+    around = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    return (valid > 0) & (around - valid < MIN_NEIGHBOURS - 0.5)
 
 
 def count_causes(causes: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:

@@ -556,9 +556,13 @@ class DepthPipeline:
             self._triangulation.refine(bands, counts, self._rows_per_cell, cfg.stride,
                                        depth_grid, moving, depth_grid, std_grid,
                                        still=still)  # fmt: skip
+        lone = cz.lone_cells(depth_grid)
+        depth_grid[lone] = np.nan
+        std_grid[lone] = np.nan
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
+        causes[lone] = cz.LONE
         counts_by_cause = cz.count_causes(causes)
         timings["total"] = (time.perf_counter() - t0) * 1e3
         self._frames += 1
