@@ -114,7 +114,10 @@ class BandParams:
         ``print_fill_px`` turns it off.
     """
 
-    min_contrast: float = 0.025
+    # 5 DN of an 8-bit camera, about 4 times its noise on a 5 ms ball; a ball's limb is
+    # dim (tuning and development rigs' balls, against 0.025: +1 to +5 points, fans and
+    # boards unchanged; 0.015 lost up to 5 points on some balls, its noise splitting gaps)
+    min_contrast: float = 0.02
     interval_tolerance: float = 0.25
     symmetry_tolerance_px: float = 0.3
     min_gap_px: float = 1.0

@@ -50,7 +50,7 @@ CAUSES = (
     ("depth", "got a depth"),
     ("no lines", "no projected line near it in one pattern: shadow, a dark surface, or "
                  "outside a projector"),
-    ("faint", "the band's contrast is below --min-contrast"),
+    ("faint", "the band's contrast is below the detector's minimum (2 % of full scale)"),
     ("cut", "the band is cut by an object edge or the image border"),
     ("overlap", "bands merge: the sweep fills the line interval (a shorter exposure helps)"),
     ("irregular", "print or an edge inside the band, or line intervals that disagree"),
