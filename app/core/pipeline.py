@@ -70,6 +70,13 @@ OVERLAP_MAX_REL_STD = 0.02
 #: pass to run (about 6 ms of CPU at 1600x1200, for any number of cells): a board's
 #: few scattered uncertain cells (0.03 %) are not worth it, a fan's hub is (5-10 %)
 MIN_SLOW_SHARE = 0.0025
+#: lines that moved since the last frame mark a moving surface only within this many grid
+#: cells of a depth the last frame measured: a ball's lines moving along themselves move
+#: on a surface measured there before, whereas where a fan's blade came or went the hub's
+#: or the wall's lines changed under it (with frames not locked to the blades, the tuning
+#: fans had 4 % of their depth on hub and wall; 0 cells cost two development balls 2-10
+#: points, 2 cells 1-5, 4 cells 0-2)
+MOVED_NEAR_DEPTH_CELLS = 4
 #: depth from the line intervals (two projectors): random error of one band's log
 #: interval ratio, and the error no averaging removes (line centres biased by blur and
 #: sweep, the tables' geometry, a curved surface), one sigma (tuning rigs: the intervals
@@ -295,6 +302,8 @@ class DepthPipeline:
         #: moved since are on a moving surface, even where they stand still within the
         #: exposure (None before the first frame)
         self._previous_lines: np.ndarray | None = None
+        #: the last frame's depth grid (None before the first frame)
+        self._previous_depth: np.ndarray | None = None
 
     # ------------------------------------------------------------------ stages
 
@@ -491,6 +500,10 @@ class DepthPipeline:
                 # the last frame's lines were read with another response: not comparable
                 self._previous_lines = None
         moved = None if self._previous_lines is None else moved_lines(grids, self._previous_lines)
+        if moved is not None and self._previous_depth is not None:
+            near = cv2.dilate(np.isfinite(self._previous_depth).view(np.uint8),
+                              np.ones((2 * MOVED_NEAR_DEPTH_CELLS + 1,) * 2, np.uint8))
+            moved &= near.view(bool)
         self._previous_lines = grids[:, :2].copy()
         t2 = time.perf_counter()
         flows = functools.partial(self.flow_model.combine, grids, cfg.flow, self._periodic)
@@ -559,6 +572,7 @@ class DepthPipeline:
         lone = cz.lone_cells(depth_grid)
         depth_grid[lone] = np.nan
         std_grid[lone] = np.nan
+        self._previous_depth = depth_grid.copy()
         t5 = time.perf_counter()
         timings["depth"] = (t5 - t4) * 1e3
         causes = self._causes(bands, counts, grids, why, raw, log_ratio, depth_grid)
