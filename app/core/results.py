@@ -177,8 +177,10 @@ def upsample_grid(grid: np.ndarray, stride: int, size: tuple[int, int]) -> np.nd
     # At an object's edge a cell is measured at its centre and the edge crosses it
     # anywhere: this threshold keeps the pixels within a quarter cell of the valid centre,
     # which on average adds as many pixels past the edge as it leaves short of it.
-    weight = _bilinear(valid.view(np.uint8).astype(np.float32), stride, size)
-    out = _bilinear(np.where(valid, grid, 0).astype(np.float32), stride, size)
+    # float64 maps stay float64 (any other dtype is interpolated in float32)
+    work = np.float64 if grid.dtype == np.float64 else np.float32
+    weight = _bilinear(valid.view(np.uint8).astype(work), stride, size)
+    out = _bilinear(np.where(valid, grid, 0).astype(work), stride, size)
     # below the threshold the weight becomes 0, and x / 0 + (x / 0) * 0 is NaN, whereas
     # on finite values the sum adds nothing: whole-array arithmetic in place, several
     # times faster than writing NaN through a mask (each new 1600x1200 array costs
@@ -186,7 +188,7 @@ def upsample_grid(grid: np.ndarray, stride: int, size: tuple[int, int]) -> np.nd
     cv2.threshold(weight, KEEP_WEIGHT - 1e-4, 0, cv2.THRESH_TOZERO, dst=weight)
     with np.errstate(invalid="ignore", divide="ignore"):
         np.divide(out, weight, out=out)
-        np.multiply(out, np.float32(0), out=weight)
+        np.multiply(out, work(0), out=weight)
         np.add(out, weight, out=out)
     return out.astype(grid.dtype, copy=False)
 
