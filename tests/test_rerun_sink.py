@@ -238,7 +238,12 @@ def test_full_disk_is_one_line_and_leaves_no_file(tmp_path):
 
     path = tmp_path / "out.rrd"
     proc = run_child(tmp_path, "full", str(path), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    out, err = proc.communicate(timeout=120)
+    try:
+        out, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()  # leave no child behind for later tests to trip over
+        out, err = proc.communicate()
+        raise AssertionError(f"a full disk hung the run; it printed: {err!r}") from None
     assert proc.returncode == 2, err
     assert err.count("\n") == 1 and "Traceback" not in err, err
     assert err.startswith(f"lightflow: error: {path}: cannot write the Rerun file (")

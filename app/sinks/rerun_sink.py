@@ -41,7 +41,6 @@ from __future__ import annotations
 import collections
 import ctypes
 import os
-import shutil
 import signal
 import subprocess
 import tempfile
@@ -63,6 +62,7 @@ from lightflow.app.core.rig import Rig
 from lightflow.app.core.threads import run_rows
 from lightflow.app.evaluation import coverage
 from lightflow.app.sinks.ply import depth_to_points, image_to_rgb8
+from lightflow.app.sinks.rrd_file import RrdFile
 
 # The SDK's Rust side prints its own multi-line errors when an .rrd write fails; this
 # sink reports that failure as one line itself.  Set before the SDK starts its logger;
@@ -97,10 +97,8 @@ LOSS_WORDS = ("drop", "lost", "missing", "fail", "underrun", "bad")
 #: plot colours: series that share a plot must be told apart without a legend
 TIME_RGB = {"latency": (255, 190, 60), "processing": (90, 170, 255)}
 PR_SET_PDEATHSIG = 1
-#: how often the .rrd writer is checked for failure (a flush), seconds
+#: how often the SDK's buffer is flushed into an .rrd file, seconds
 CHECK_INTERVAL_S = 1.0
-#: below this much free space a failed write is reported as a full disk
-FULL_DISK_BYTES = 64 << 20
 
 # Google's polynomial approximation of the turbo colormap (the viewer's depth colormap),
 # so 3D points and flows are coloured like the depth image.
@@ -388,12 +386,13 @@ class RerunOutput:
 
     Notes
     -----
-    The SDK writes an .rrd on a thread of its own and reports a failed write
-    (a full disk) only when flushed.  :meth:`pump` flushes at most every
-    :data:`CHECK_INTERVAL_S`, so a full disk stops the run within a second as one
-    :class:`DriverError` line, and the partial file is removed.  (The SDK's own
-    stream of bytes, ``binary_stream``, cannot be written piecewise: each read
-    is a complete .rrd of its own.)
+    Files are written by :class:`~lightflow.app.sinks.rrd_file.RrdFile`, not by
+    the SDK's own writer, which can hang on a failed write.  :meth:`pump` checks
+    the file on every call and flushes at most every :data:`CHECK_INTERVAL_S` (so
+    the SDK's buffer stays within a second of data): a full disk stops the run
+    within a second as one :class:`DriverError` line, and the partial file is
+    removed.  (The SDK's own stream of bytes, ``binary_stream``, cannot be written
+    piecewise: each read is a complete .rrd of its own.)
     """
 
     def __init__(
@@ -410,6 +409,7 @@ class RerunOutput:
         self.save_path = Path(save_path) if save_path is not None and mode != "rrd" else None
         self._failed = False
         self._next_check = 0.0
+        self._file: RrdFile | None = None
         if mode == "rrd":
             self._open_file()
         elif mode == "serve":
@@ -417,14 +417,22 @@ class RerunOutput:
         else:
             self._open_viewer()
 
+    def _start_file(self, path: Path) -> RrdFile:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = RrdFile(path)
+        except OSError as exc:
+            raise DriverError(f"{path}: cannot write the Rerun file: {exc.strerror}") from None
+        return self._file
+
     def _open_file(self) -> None:
         assert self.path is not None
+        file = self._start_file(self.path)
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(self.path)
-        except (OSError, RuntimeError) as exc:
-            reason = exc.strerror if isinstance(exc, OSError) else str(exc)
-            raise DriverError(f"{self.path}: cannot write the Rerun file: {reason}") from None
+            self.rec.save(file.sink_path)
+        except RuntimeError as exc:
+            self.discard()
+            raise DriverError(f"{self.path}: cannot write the Rerun file: {exc}") from None
 
     def _open_server(self) -> None:
         disable_viewer_analytics()
@@ -460,74 +468,86 @@ class RerunOutput:
         if self.save_path is None:
             self.rec.connect_grpc(self.url)
             return
+        file = self._start_file(self.save_path)
         try:
-            self.save_path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.set_sinks(rr.GrpcSink(self.url), rr.FileSink(self.save_path))
-        except (OSError, RuntimeError) as exc:
-            reason = exc.strerror if isinstance(exc, OSError) else str(exc)
-            raise DriverError(f"{self.save_path}: cannot write the Rerun file: {reason}") from None
+            self.rec.set_sinks(rr.GrpcSink(self.url), rr.FileSink(file.sink_path))
+        except RuntimeError as exc:
+            self.discard()
+            raise DriverError(f"{self.save_path}: cannot write the Rerun file: {exc}") from None
 
     def pump(self, force: bool = False) -> None:
-        """Check that the .rrd is being written (at most every CHECK_INTERVAL_S; no-op else)."""
-        if self.mode != "rrd" or self._failed:
+        """Check that the .rrd is being written; flush at most every CHECK_INTERVAL_S.
+
+        No-op without a file.  A failed write raises one :class:`DriverError`.
+        """
+        if self._file is None or self._failed:
             return
+        if self._file.error is not None:
+            self._fail()
         now = time.monotonic()
         if not force and now < self._next_check:
             return
         self._next_check = now + CHECK_INTERVAL_S
-        try:
-            self.rec.flush()
-        except RuntimeError:
-            self._fail()
+        if self.mode == "rrd":
+            self.rec.flush()  # keeps the SDK's buffer to a second of data; a viewer may lag
 
     def _fail(self) -> None:
-        self._failed = True
-        try:
-            free = shutil.disk_usage(self.path.parent).free
-        except OSError:
-            free = 0
-        reason = (
-            "the disk is full" if free < FULL_DISK_BYTES
-            else "the write failed: a file size limit, or the disk was full"
-        )
+        assert self._file is not None and self._file.error is not None
+        reason = self._file.reason()
         self.discard()
         raise DriverError(
-            f"{self.path}: cannot write the Rerun file ({reason}); the partial file was removed"
+            f"{self._file.path}: cannot write the Rerun file ({reason}); "
+            "the partial file was removed"
         ) from None
 
     def discard(self) -> None:
         """Stop writing and delete the .rrd file: after a failure nothing half-written is left."""
-        if self.mode != "rrd":
+        if self._file is None:
             return
         self._failed = True
         try:
             self.rec.disconnect()
         except RuntimeError:
-            pass  # the writer already failed; the file goes anyway
-        self.path.unlink(missing_ok=True)
+            pass  # a viewer that went away; the file goes anyway
+        self._file.finish()
+        self._file.path.unlink(missing_ok=True)
 
     def close(self) -> None:
         """Flush and disconnect (the .rrd is complete afterwards); stop a server child.
 
-        A viewer that died becomes one :class:`DriverError` line.
+        A viewer that died, or a file that could not be written, becomes one
+        :class:`DriverError` line.
         """
         try:
             if self._failed:
                 return
             if self.mode == "rrd":
-                self.pump(force=True)
-                self.rec.disconnect()
-                return
-            try:
                 self.rec.flush()
                 self.rec.disconnect()
+                self._file.finish()
+                if self._file.error is not None:
+                    self._fail()
+                return
+            severed = None
+            try:
+                self.rec.flush()
             except RuntimeError as exc:
                 # the SDK reports a viewer that died or was closed as a severed connection
+                severed = exc
+            try:
+                self.rec.disconnect()
+            except RuntimeError as exc:
+                severed = severed or exc
+            if self._file is not None:
+                self._file.finish()  # the saved copy is complete even when the viewer is gone
+                if self._file.error is not None:
+                    self._fail()
+            if severed is not None:
                 reason = self.process.exit_reason() if self.process else None
                 saved = f" (the run is in {self.save_path})" if self.save_path else ""
                 raise DriverError(
-                    (f"Rerun viewer exited: {reason}" if reason else f"Rerun: {exc}") + saved
-                ) from None
+                    (f"Rerun viewer exited: {reason}" if reason else f"Rerun: {severed}") + saved
+                )
         finally:
             if self.mode == "serve" and self.process is not None:
                 self.process.stop()
