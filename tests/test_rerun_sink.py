@@ -195,6 +195,26 @@ def test_serve_listens_on_loopback_only(rig, tmp_path):
     assert not proc.is_running() or proc.status() == psutil.STATUS_ZOMBIE
 
 
+def test_a_killed_server_is_one_line_and_the_saved_file_is_complete(rig, tmp_path):
+    import os
+    import signal
+
+    saved = tmp_path / "run.rrd"
+    sink = RerunSink(rig, "serve", port=free_port(), save_path=saved)
+    try:
+        for i in range(3):
+            sink.write(make_result(rig, i), RunStats())
+        os.kill(sink._process.pid, signal.SIGKILL)
+        sink._process.proc.wait()
+        for i in range(3, 6):  # the run goes on; the copy on disk gets everything
+            sink.write(make_result(rig, i), RunStats())
+    finally:
+        with pytest.raises(DriverError) as err:
+            sink.close()
+    assert str(err.value) == f"Rerun server exited (killed by SIGKILL) (the run is in {saved})"
+    assert sorted(column(chunks_by_entity(saved)["/world/camera/depth"], "frame")) == list(range(6))
+
+
 CHILD = """
 import resource, signal, sys
 sys.path.insert(0, {tests!r})

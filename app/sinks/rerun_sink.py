@@ -41,6 +41,7 @@ from __future__ import annotations
 import collections
 import ctypes
 import os
+import re
 import signal
 import subprocess
 import tempfile
@@ -97,6 +98,9 @@ LOSS_WORDS = ("drop", "lost", "missing", "fail", "underrun", "bad")
 #: plot colours: series that share a plot must be told apart without a legend
 TIME_RGB = {"latency": (255, 190, 60), "processing": (90, 170, 255)}
 PR_SET_PDEATHSIG = 1
+#: colour codes in the Rerun binary's log lines, and its lines of routine news
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_ROUTINE = re.compile(r"^\S+Z\s+(TRACE|DEBUG|INFO)\b")
 #: how often the SDK's buffer is flushed into an .rrd file, seconds
 CHECK_INTERVAL_S = 1.0
 
@@ -328,13 +332,21 @@ class RerunProcess:
         self._ready.set()  # EOF: the child ended; start() checks poll()
 
     def exit_reason(self) -> str | None:
-        """The last line the child printed, if it has exited (None while it runs)."""
+        """How the child ended, and its last warning or error line (None while it runs)."""
         if self.proc is None or self.proc.poll() is None:
             return None
+        code = self.proc.returncode
+        try:
+            how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit status {code}"
+        except ValueError:
+            how = f"exit status {code}"
         lines = list(self._tail)
         if self.log_path and self.log_path.exists():
             lines = self.log_path.read_text(errors="replace").strip().splitlines()
-        return lines[-1].strip() if lines else f"exit status {self.proc.returncode}"
+        # its log lines are coloured; a routine INFO line ("Listening ...") says nothing
+        told = [_ANSI.sub("", line).strip() for line in lines]
+        told = [line for line in told if line and not _ROUTINE.match(line)]
+        return f"{how}: {told[-1]}" if told else how
 
     @property
     def pid(self) -> int | None:
@@ -545,8 +557,9 @@ class RerunOutput:
             if severed is not None:
                 reason = self.process.exit_reason() if self.process else None
                 saved = f" (the run is in {self.save_path})" if self.save_path else ""
+                kind = "server" if self.mode == "serve" else "viewer"
                 raise DriverError(
-                    (f"Rerun viewer exited: {reason}" if reason else f"Rerun: {severed}") + saved
+                    (f"Rerun {kind} exited ({reason})" if reason else f"Rerun: {severed}") + saved
                 )
         finally:
             if self.mode == "serve" and self.process is not None:
