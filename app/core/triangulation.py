@@ -224,24 +224,30 @@ def _column(pp, rx, ry, z):
     return proj_u_du(pp, rx, ry, z)
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always", **INTERNAL)
+def _inverse_depth_step(z, u, du, column):
+    """One Newton step towards the depth where projector column ``u`` (slope ``du``
+    in depth, both at depth ``z``) becomes ``column``, taken in inverse depth (where
+    the column is nearly linear): the new inverse depth (0 or less: none)."""
+    return 1.0 / z + (column - u) / (-du * z * z)  # du/dw = du/dz * dz/dw = -du * z^2
+
+
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _depth_on_line(pp, rx, ry, column, z0, near, far):
     """Depth at which the camera ray ``(rx, ry, 1)`` meets the projector's plane of
     ``column``, by Newton's method in inverse depth from ``z0``; NaN outside
     ``near .. far``."""
-    w = 1.0 / z0
+    z = z0
     for _ in range(NEWTON):
-        u, du, pz = _column(pp, rx, ry, 1.0 / w)
+        u, du, pz = _column(pp, rx, ry, z)
         if not pz > 0.0 or du == 0.0:
             return np.nan
-        f = u - column
-        # du/dw = du/dz * dz/dw = -du * z^2
-        w += f * w * w / du
+        w = _inverse_depth_step(z, u, du, column)
         if not w > 0.0:
             return np.nan
-        if abs(f) < 1e-4:
+        z = 1.0 / w
+        if abs(u - column) < 1e-4:
             break
-    z = 1.0 / w
     if not (near <= z <= far):
         return np.nan
     return z
@@ -451,12 +457,11 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                             u0, du, pz = col_u[p, t], col_du[p, t], 1.0
                         else:
                             u0, du, pz = _column(pp, rxy[p, t, 0], rxy[p, t, 1], z0)
-                        g = -du * z0 * z0  # du/dw
                         for c in range(nc):
                             k = kc - SEARCH + c + direction[p] * slot[p, t]
                             v = np.nan
-                            if pz > 0.0 and g != 0.0 and 0 <= k < n_lit[p]:
-                                w = 1.0 / z0 + (lit[p, k] - u0) / g
+                            if pz > 0.0 and du != 0.0 and 0 <= k < n_lit[p]:
+                                w = _inverse_depth_step(z0, u0, du, lit[p, k])
                                 if w > 0.0:
                                     v = 1.0 / w
                             if np.isfinite(v):
@@ -464,9 +469,8 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                                 # at a prior a line or two off, the right candidate can miss
                                 # by as much as AGREE and lose to a wrong pair at the prior
                                 u1, du1, pz1 = _column(pp, rxy[p, t, 0], rxy[p, t, 1], v)
-                                g1 = -du1 * v * v
-                                if pz1 > 0.0 and g1 != 0.0:
-                                    w = 1.0 / v + (lit[p, k] - u1) / g1
+                                if pz1 > 0.0 and du1 != 0.0:
+                                    w = _inverse_depth_step(v, u1, du1, lit[p, k])
                                     v = 1.0 / w if w > 0.0 else np.nan
                             cand[p, t, c] = v
             # pairs of overlapping runs of the two patterns: the pair of offsets that agrees
