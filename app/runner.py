@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from lightflow.app.core.errors import OutputClosed
 from lightflow.app.core.results import FrameResult, RunStats
 from lightflow.app.sinks.background import BackgroundSink
 from lightflow.app.status import CAUSE_PREFIX
@@ -249,6 +250,9 @@ class Runner:
         self.sinks_closed = False
         #: True when the run ended because ``stop`` was set (Ctrl-C, window closed)
         self.stopped = False
+        #: what the user closed, when a sink's window was closed (the run then stopped)
+        self.closed_output: str | None = None
+        self._closed_sinks: list = []
         self.interrupted = False
 
     # ------------------------------------------------------------------ public
@@ -470,7 +474,17 @@ class Runner:
                 for text in result.warnings:
                     self._warn_once(text)
                 for sink in self.sinks:
-                    sink.write(result, snapshot)
+                    if any(sink is c for c in self._closed_sinks):
+                        continue
+                    try:
+                        sink.write(result, snapshot)
+                    except OutputClosed as exc:
+                        # the user closed its window: stop as after Ctrl-C; the frames
+                        # already queued still reach the other outputs
+                        self._closed_sinks.append(sink)
+                        if self.closed_output is None:
+                            self.closed_output = str(exc)
+                        self._stop.set()
                 if self.on_stats is not None:
                     self.on_stats(snapshot)
         except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
@@ -492,6 +506,9 @@ class Runner:
         for sink in self.sinks:
             try:
                 sink.close()
+            except OutputClosed as exc:  # closed during the last frames: not an error
+                if self.closed_output is None:
+                    self.closed_output = str(exc)
             except BaseException as exc:  # noqa: BLE001 - every sink still gets closed
                 self._fail(exc)
 

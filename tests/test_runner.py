@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lightflow.app.cameras import open_camera
-from lightflow.app.core.errors import DeviceLostError, DriverError, FrameError
+from lightflow.app.core.errors import DeviceLostError, DriverError, FrameError, OutputClosed
 from lightflow.app.core.pipeline import DepthPipeline, PipelineConfig
 from lightflow.app.core.results import BandSet, RunStats
 from lightflow.app.core.rig import load_rig
@@ -103,10 +103,12 @@ class ListCamera(Camera):
 class ListSink:
     """Collects frame indices; may block on an Event or fail on a given write or on close."""
 
-    def __init__(self, gate: threading.Event | None = None, fail_at=None, fail_close=None):
+    def __init__(self, gate: threading.Event | None = None, fail_at=None, fail_close=None,
+                 fail_with=None):  # fmt: skip
         self.gate = gate
         self.fail_at = fail_at
         self.fail_close = fail_close
+        self.fail_with = fail_with or DriverError("test sink: disk full")
         self.indices: list[int] = []
         self.stats: list[RunStats] = []
         self.closed = 0
@@ -115,7 +117,7 @@ class ListSink:
         if self.gate is not None:
             assert self.gate.wait(WAIT_S)
         if self.fail_at is not None and len(self.indices) == self.fail_at:
-            raise DriverError("test sink: disk full")
+            raise self.fail_with
         self.indices.append(result.frame.index)
         self.stats.append(stats)
         assert result.depth.shape == (300, 400)
@@ -235,6 +237,29 @@ def test_close_error_is_raised_and_other_sinks_still_close(image, pipeline):
     with cam, pytest.raises(DriverError, match="viewer exited"):
         Runner(cam, pipeline, [failing, other]).run()
     assert failing.closed == 1 and other.closed == 1
+
+
+def test_a_closed_viewer_stops_the_run_like_ctrl_c(image, pipeline):
+    cam = ListCamera([image], endless=True)
+    viewer = ListSink(fail_at=3, fail_with=OutputClosed("the Rerun viewer was closed"))
+    other = ListSink()
+    runner = Runner(cam, pipeline, [viewer, other])
+    with cam:
+        runner.run()  # no error: a user's stop
+    assert runner.stopped and runner.closed_output == "the Rerun viewer was closed"
+    assert len(viewer.indices) == 3 and viewer.closed == 1
+    # the results already under way still reach the other outputs, in order
+    assert len(other.indices) >= 4 and other.indices == sorted(other.indices)
+    assert other.closed == 1
+
+
+def test_a_viewer_closed_during_the_last_frames_is_no_error(image, pipeline):
+    cam = ListCamera([image] * 2)
+    viewer = ListSink(fail_close=OutputClosed("the Rerun viewer was closed"))
+    runner = Runner(cam, pipeline, [viewer])
+    with cam:
+        runner.run()
+    assert runner.closed_output == "the Rerun viewer was closed" and not runner.stopped
 
 
 def test_stop_from_outside_with_main_thread_busy(image, pipeline):

@@ -22,8 +22,10 @@ import numpy as np
 import psutil
 import pytest
 from rerun.experimental import ViewerClient
+from test_rerun_sink import chunks_by_entity, column
 
 from lightflow.app.core.causes import DEPTH, NO_LINES, STATIC, count_causes
+from lightflow.app.core.errors import OutputClosed
 from lightflow.app.core.results import BandSet, FrameResult, RunStats
 from lightflow.app.core.rig import load_rig
 from lightflow.app.sinks.rerun_sink import RerunSink, disable_viewer_analytics, rerun_binary
@@ -229,4 +231,38 @@ def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
     finally:
         if sink is not None and sink._process is not None:
             sink._process.stop()  # the viewer outlives the sink by design; not the test
+        server.stop()
+
+
+def test_closing_the_spawned_viewer_stops_cleanly(tmp_path, monkeypatch):
+    """The user quits the viewer (as its window's close button does): the next frame
+    says so once (:class:`OutputClosed`, which the runner treats as Ctrl-C), closing is
+    quiet, and the saved copy holds every frame logged."""
+    from xserver import start_xvfb
+
+    if not LAVAPIPE_ICD.exists():
+        pytest.fail(f"no software Vulkan ({LAVAPIPE_ICD}): apt-get install mesa-vulkan-drivers")
+    rig = load_rig(RIG_FILE).scaled(0.25)
+    server = start_xvfb(tmp_path, 1280, 800)
+    sink = None
+    try:
+        monkeypatch.setenv("DISPLAY", server.display)
+        monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+        port = free_port()
+        saved = tmp_path / "kept.rrd"
+        sink = RerunSink(rig, "spawn", port=port, save_path=saved)
+        for i in range(2):
+            sink.write(disc_result(rig, i), RunStats(frames_done=i + 1))
+        # the viewer's own Quit (Ctrl+Q), as a user closing it
+        ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy").run_command("ui.quit")
+        assert sink._process.proc.wait(timeout=30) == 0
+        with pytest.raises(OutputClosed) as closed:
+            sink.write(disc_result(rig, 2), RunStats(frames_done=3))
+        assert str(closed.value) == f"the Rerun viewer was closed (the run is in {saved})"
+        sink.close()  # quiet: already reported
+        frames = sorted(column(chunks_by_entity(saved)["/world/camera/depth"], "frame"))
+        assert frames == [0, 1, 2]
+    finally:
+        if sink is not None and sink._process is not None:
+            sink._process.stop()
         server.stop()

@@ -31,7 +31,8 @@ that a recording has one exposure.
 With --screens, the rig's patterns are shown fullscreen on those screens for
 the whole run (as `lightflow project` does).  Ctrl-C, Esc in a pattern window
 or closing it stops cleanly: queued frames are finished and every output,
-including the recording, is complete.  When processing falls behind, the
+including the recording, is complete.  So does closing the Rerun viewer
+of --spawn.  When processing falls behind, the
 oldest frames are dropped (counted in the status line); --record still gets
 every frame the camera delivers.
 
@@ -215,7 +216,9 @@ def run(args: argparse.Namespace) -> int:
     if recorder is not None:
         dropped = f", {recorder.dropped} DROPPED (disk too slow)" if recorder.dropped else ""
         print(f"recording: {recorder.written} frames in {args.record}{dropped}")
-    if runner.stopped or runner.interrupted:
+    if runner.closed_output:
+        print(f"stopped: {runner.closed_output}; every output is complete", file=sys.stderr)
+    elif runner.stopped or runner.interrupted:
         print("stopped; every output is complete", file=sys.stderr)
     return 0
 

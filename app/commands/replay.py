@@ -31,7 +31,7 @@ formats are described in docs/formats.md.
 Exit status: 0 when every frame was replayed; 2 when any frame was bad (the
 good ones are still processed and written), when the recording or the rig is
 malformed, or when an output cannot be written (e.g. a full disk); 130 when
-stopped with Ctrl-C."""
+stopped early with Ctrl-C or by closing the Rerun viewer of --spawn."""
 
 EPILOG = """\
 examples:
@@ -101,8 +101,9 @@ def run(args: argparse.Namespace) -> int:
     print(describe_response(pipeline), file=sys.stderr)
     print(describe_crosstalk(pipeline), file=sys.stderr)
     describe_outputs(sinks)
-    if runner.interrupted:
-        print("stopped early (Ctrl-C): outputs hold the frames processed so far", file=sys.stderr)
+    if runner.interrupted or (runner.stopped and runner.closed_output):
+        why = "Ctrl-C" if runner.interrupted else runner.closed_output
+        print(f"stopped early ({why}): outputs hold the frames processed so far", file=sys.stderr)
         return 130
     if camera.bad_frames:
         # the good frames are done; the bad ones are input errors all the same

@@ -22,6 +22,11 @@ class OutputError(LightflowError):
     """An output (export, recording, .rrd) could not be written, e.g. a full disk."""
 
 
+class OutputClosed(LightflowError):
+    """The user closed an output window (the Rerun viewer): the run stops as after Ctrl-C,
+    every output complete.  Raised by a sink's ``write``; the runner stops on it."""
+
+
 class DriverError(LightflowError):
     """A camera or pattern output failed or could not be opened."""
 

@@ -56,7 +56,7 @@ import numpy as np
 import pyarrow as pa
 
 from lightflow.app.core.causes import CAUSE_COLOURS, CAUSES
-from lightflow.app.core.errors import ConfigError, DriverError
+from lightflow.app.core.errors import ConfigError, DriverError, OutputClosed
 from lightflow.app.core.geometry import camera_rays
 from lightflow.app.core.results import BandSet, FrameResult, RunStats
 from lightflow.app.core.rig import Rig
@@ -68,7 +68,7 @@ from lightflow.app.sinks.rrd_file import RrdFile
 # The SDK's Rust side prints its own multi-line errors when an .rrd write fails; this
 # sink reports that failure as one line itself.  Set before the SDK starts its logger;
 # a RUST_LOG chosen by the user wins.
-_QUIET_SDK = "warn,re_log_encoding=off,re_sdk::recording_stream=off"
+_QUIET_SDK = "warn,re_log_encoding=off,re_sdk::recording_stream=off,re_grpc_client=off"
 os.environ.setdefault("RUST_LOG", _QUIET_SDK)
 
 import rerun as rr  # noqa: E402
@@ -420,6 +420,7 @@ class RerunOutput:
         self.process: RerunProcess | None = None
         self.save_path = Path(save_path) if save_path is not None and mode != "rrd" else None
         self._failed = False
+        self._gone = False  # the viewer or server child ended (reported once)
         self._next_check = 0.0
         self._file: RrdFile | None = None
         if mode == "rrd":
@@ -488,11 +489,18 @@ class RerunOutput:
             raise DriverError(f"{self.save_path}: cannot write the Rerun file: {exc}") from None
 
     def pump(self, force: bool = False) -> None:
-        """Check that the .rrd is being written; flush at most every CHECK_INTERVAL_S.
+        """Check the viewer or server and the .rrd; flush at most every CHECK_INTERVAL_S.
 
-        No-op without a file.  A failed write raises one :class:`DriverError`.
+        A viewer closed by the user raises :class:`OutputClosed` (once); a viewer or
+        server that died, or a failed write, one :class:`DriverError`.
         """
-        if self._file is None or self._failed:
+        if self._failed:
+            return
+        if not self._gone and self.process is not None and self.process.proc is not None \
+                and self.process.proc.poll() is not None:  # fmt: skip
+            self._gone = True
+            self._lost_process()
+        if self._file is None:
             return
         if self._file.error is not None:
             self._fail()
@@ -502,6 +510,14 @@ class RerunOutput:
         self._next_check = now + CHECK_INTERVAL_S
         if self.mode == "rrd":
             self.rec.flush()  # keeps the SDK's buffer to a second of data; a viewer may lag
+
+    def _lost_process(self) -> None:
+        assert self.process is not None and self.process.proc is not None
+        saved = f" (the run is in {self.save_path})" if self.save_path else ""
+        if self.mode == "spawn" and self.process.proc.returncode == 0:
+            raise OutputClosed(f"the Rerun viewer was closed{saved}")
+        kind = "server" if self.mode == "serve" else "viewer"
+        raise DriverError(f"Rerun {kind} exited ({self.process.exit_reason()}){saved}")
 
     def _fail(self) -> None:
         assert self._file is not None and self._file.error is not None
@@ -528,7 +544,7 @@ class RerunOutput:
         """Flush and disconnect (the .rrd is complete afterwards); stop a server child.
 
         A viewer that died, or a file that could not be written, becomes one
-        :class:`DriverError` line.
+        :class:`DriverError` line (once: not again after :meth:`pump` reported it).
         """
         try:
             if self._failed:
@@ -554,7 +570,7 @@ class RerunOutput:
                 self._file.finish()  # the saved copy is complete even when the viewer is gone
                 if self._file.error is not None:
                     self._fail()
-            if severed is not None:
+            if severed is not None and not self._gone:
                 reason = self.process.exit_reason() if self.process else None
                 saved = f" (the run is in {self.save_path})" if self.save_path else ""
                 kind = "server" if self.mode == "serve" else "viewer"
