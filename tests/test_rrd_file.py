@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import errno
 import os
-import resource
-import signal
-
-import pytest
+import subprocess
+import sys
+from pathlib import Path
 
 from lightflow.app.sinks.rrd_file import CHUNK_BYTES, RrdFile
 
@@ -33,25 +32,32 @@ def test_bytes_arrive_in_order(tmp_path):
     assert path.read_bytes() == data
 
 
-@pytest.fixture
-def size_limit():
-    """A file size limit: writes past it fail with EFBIG (SIGXFSZ ignored), like a full disk."""
-    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    old_limit = resource.getrlimit(resource.RLIMIT_FSIZE)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, old_limit[1]))
-    yield 100_000
-    resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
-    signal.signal(signal.SIGXFSZ, old_handler)
+LIMITED = """
+import errno, os, resource, signal, sys
+from lightflow.app.sinks.rrd_file import CHUNK_BYTES, RrdFile
+sys.path.insert(0, {tests!r})
+from test_rrd_file import write_all
+# a file size limit fails writes past it with EFBIG (SIGXFSZ ignored), like a full disk
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))
+file = RrdFile({path!r})
+# far more than the pipe holds: a copy that stopped reading would block this writer
+write_all(file.sink_path, bytes(8 * CHUNK_BYTES))
+file.finish()
+assert isinstance(file.error, OSError) and file.error.errno == errno.EFBIG, file.error
+print(file.reason())
+"""
 
 
-def test_failed_write_is_kept_and_the_pipe_still_drains(tmp_path, size_limit):
-    file = RrdFile(tmp_path / "b.rrd")
-    # far more than the pipe holds: a copy that stopped reading would block this writer
-    write_all(file.sink_path, bytes(8 * CHUNK_BYTES))
-    file.finish()
-    assert isinstance(file.error, OSError) and file.error.errno == errno.EFBIG
-    assert file.reason() == "the file size limit was reached"
-    assert (tmp_path / "b.rrd").stat().st_size <= size_limit
+def test_failed_write_is_kept_and_the_pipe_still_drains(tmp_path):
+    # in a child: the limit holds for every file of the process that sets it
+    path = tmp_path / "b.rrd"
+    script = LIMITED.format(tests=str(Path(__file__).parent), path=str(path))
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "the file size limit was reached\n"
+    assert path.stat().st_size <= 100_000
 
 
 def test_reasons_name_a_full_disk():
