@@ -156,3 +156,23 @@ def test_live_capture_writes_a_valid_session(tmp_path):
     assert [v[0] for v in _column(ent["/poses/captured"], "Scalars:scalars")] == [1.0, 2.0, 3.0]
     texts = [t[0] for t in _column(ent["/status"], "TextLog:text")]
     assert "pose01: too similar to pose00" in texts[1] and "3/3 poses" in texts[3]
+
+
+def test_a_closed_viewer_ends_the_logging_not_the_session(tmp_path):
+    from lightflow.app.core.errors import OutputClosed
+    from lightflow.calibration.live import PoseView
+
+    sink = CalibrationSink(DEFAULT_BOARD, ["left", "right"], "rrd", path=tmp_path / "p.rrd")
+    pumped = []
+
+    def pump(force=False):
+        pumped.append(force)
+        if len(pumped) == 3:  # the user closes the viewer during the third attempt
+            raise OutputClosed("the Rerun viewer was closed")
+
+    sink.output.pump = pump
+    image = np.zeros((80, 100), np.float32)
+    for k in range(4):
+        sink.log(PoseView("pose00", k, image, None, False, "no board found", None, None, {}, 0))
+    sink.close()
+    assert sink.closed_at == 3 and sink.attempts == 3 and len(pumped) == 3

@@ -30,7 +30,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from lightflow.app.core.errors import ConfigError
+from lightflow.app.core.errors import ConfigError, OutputClosed
 from lightflow.app.sinks.rerun_sink import RerunOutput, RerunProcess
 from lightflow.calibration.live import PoseView, guessed_K
 from lightflow.calibration.session import Board
@@ -99,6 +99,8 @@ class CalibrationSink:
         self.captured = 0
         self._static_done = False
         self._closed = False
+        #: the attempt after which the user closed the viewer (None: open)
+        self.closed_at: int | None = None
         self.output = RerunOutput(app_id, mode, self.path, port)
         self.rec = self.output.rec
         self._process: RerunProcess | None = self.output.process
@@ -114,7 +116,13 @@ class CalibrationSink:
         self._static_done = True
 
     def log(self, view: PoseView) -> None:
-        """Log one attempt (called from the capture thread)."""
+        """Log one attempt (called from the capture thread).
+
+        A viewer the user closed ends the logging, not the session: its poses are
+        still captured and saved (:meth:`describe` says when it was closed).
+        """
+        if self.closed_at is not None:
+            return
         rec = self.rec
         img = view.image
         if not self._static_done:
@@ -141,7 +149,10 @@ class CalibrationSink:
             self.captured = view.captured
             rec.log("poses/captured", rr.Scalars(float(view.captured)))
         self.attempts += 1
-        self.output.pump()
+        try:
+            self.output.pump()
+        except OutputClosed:
+            self.closed_at = self.attempts
 
     def _log_board(self, view: PoseView) -> None:
         b = self.board
@@ -170,4 +181,6 @@ class CalibrationSink:
         n = f"{self.attempts} attempts, {self.captured} poses captured"
         if self.mode == "rrd":
             return f"Rerun: {n} in {self.path}; open with `rerun {self.path}`"
+        if self.closed_at is not None:
+            return f"Rerun viewer on 127.0.0.1:{self.port} ({n}; closed after {self.closed_at})"
         return f"Rerun viewer on 127.0.0.1:{self.port} ({n})"
