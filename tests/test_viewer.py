@@ -187,8 +187,11 @@ def test_rerun_binary_present():
     assert shutil.which(str(rerun_binary())), rerun_binary()
 
 
-def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
-    """``--spawn``: the real (windowed) viewer on Xvfb gets every frame, listens on 127.0.0.1."""
+@pytest.fixture
+def spawned(tmp_path, monkeypatch):
+    """A RerunSink on a real (windowed) viewer it spawned on a private Xvfb, saving to
+    ``kept.rrd``: ``(rig, sink, port, saved)``; the viewer and the X server are stopped
+    afterwards (the viewer outlives a sink by design; not a test)."""
     from xserver import start_xvfb
 
     if not LAVAPIPE_ICD.exists():
@@ -203,66 +206,56 @@ def test_spawned_viewer_is_on_loopback_and_shows_the_run(tmp_path, monkeypatch):
         port = free_port()
         saved = tmp_path / "kept.rrd"
         sink = RerunSink(rig, "spawn", port=port, save_path=saved)
-        viewer = psutil.Process(sink._process.pid)
-        for i in range(3):
-            sink.write(disc_result(rig, i), RunStats(frames_done=i + 1))
-        sink.close()
-        listening = [
-            c.laddr for p in [viewer, *viewer.children(True)]
-            for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN
-        ]  # fmt: skip
-        assert listening and all(a.ip == "127.0.0.1" for a in listening), listening
-        client = ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy")
-        for _ in range(50):
-            state = client.get_state()
-            if state.recordings and not state.loading:
-                break
-            client.take_screenshot(max_size=64)  # blocks for one paint: paces the loop
-        [recording] = state.recordings
-        frame = next(t for t in recording.timelines if t.name == "frame")
-        assert (frame.start, frame.end) == (0, 2)
-        assert len(state.views) == 16
-        client.take_screenshot(max_size=256)  # every view painted once: reports are current
-        state = client.get_state()
-        assert not [(v.name, v.reports) for v in state.views if v.reports]
-        assert saved.stat().st_size > 0  # and the run is kept in a file too
-        config = json.loads((tmp_path / "config/rerun/analytics.json").read_text())
-        assert config["analytics_enabled"] is False
-    finally:
-        if sink is not None and sink._process is not None:
-            sink._process.stop()  # the viewer outlives the sink by design; not the test
-        server.stop()
-
-
-def test_closing_the_spawned_viewer_stops_cleanly(tmp_path, monkeypatch):
-    """The user quits the viewer (as its window's close button does): the next frame
-    says so once (:class:`OutputClosed`, which the runner treats as Ctrl-C), closing is
-    quiet, and the saved copy holds every frame logged."""
-    from xserver import start_xvfb
-
-    if not LAVAPIPE_ICD.exists():
-        pytest.fail(f"no software Vulkan ({LAVAPIPE_ICD}): apt-get install mesa-vulkan-drivers")
-    rig = load_rig(RIG_FILE).scaled(0.25)
-    server = start_xvfb(tmp_path, 1280, 800)
-    sink = None
-    try:
-        monkeypatch.setenv("DISPLAY", server.display)
-        monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
-        port = free_port()
-        saved = tmp_path / "kept.rrd"
-        sink = RerunSink(rig, "spawn", port=port, save_path=saved)
-        for i in range(2):
-            sink.write(disc_result(rig, i), RunStats(frames_done=i + 1))
-        # the viewer's own Quit (Ctrl+Q), as a user closing it
-        ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy").run_command("ui.quit")
-        assert sink._process.proc.wait(timeout=30) == 0
-        with pytest.raises(OutputClosed) as closed:
-            sink.write(disc_result(rig, 2), RunStats(frames_done=3))
-        assert str(closed.value) == f"the Rerun viewer was closed (the run is in {saved})"
-        sink.close()  # quiet: already reported
-        frames = sorted(column(chunks_by_entity(saved)["/world/camera/depth"], "frame"))
-        assert frames == [0, 1, 2]
+        yield rig, sink, port, saved
     finally:
         if sink is not None and sink._process is not None:
             sink._process.stop()
         server.stop()
+
+
+def test_spawned_viewer_is_on_loopback_and_shows_the_run(spawned, tmp_path):
+    """``--spawn``: the real (windowed) viewer on Xvfb gets every frame, listens on 127.0.0.1."""
+    rig, sink, port, saved = spawned
+    viewer = psutil.Process(sink._process.pid)
+    for i in range(3):
+        sink.write(disc_result(rig, i), RunStats(frames_done=i + 1))
+    sink.close()
+    listening = [
+        c.laddr for p in [viewer, *viewer.children(True)]
+        for c in p.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN
+    ]  # fmt: skip
+    assert listening and all(a.ip == "127.0.0.1" for a in listening), listening
+    client = ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy")
+    for _ in range(50):
+        state = client.get_state()
+        if state.recordings and not state.loading:
+            break
+        client.take_screenshot(max_size=64)  # blocks for one paint: paces the loop
+    [recording] = state.recordings
+    frame = next(t for t in recording.timelines if t.name == "frame")
+    assert (frame.start, frame.end) == (0, 2)
+    assert len(state.views) == 16
+    client.take_screenshot(max_size=256)  # every view painted once: reports are current
+    state = client.get_state()
+    assert not [(v.name, v.reports) for v in state.views if v.reports]
+    assert saved.stat().st_size > 0  # and the run is kept in a file too
+    config = json.loads((tmp_path / "config/rerun/analytics.json").read_text())
+    assert config["analytics_enabled"] is False
+
+
+def test_closing_the_spawned_viewer_stops_cleanly(spawned):
+    """The user quits the viewer (as its window's close button does): the next frame
+    says so once (:class:`OutputClosed`, which the runner treats as Ctrl-C), closing is
+    quiet, and the saved copy holds every frame logged."""
+    rig, sink, port, saved = spawned
+    for i in range(2):
+        sink.write(disc_result(rig, i), RunStats(frames_done=i + 1))
+    # the viewer's own Quit (Ctrl+Q), as a user closing it
+    ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy").run_command("ui.quit")
+    assert sink._process.proc.wait(timeout=30) == 0
+    with pytest.raises(OutputClosed) as closed:
+        sink.write(disc_result(rig, 2), RunStats(frames_done=3))
+    assert str(closed.value) == f"the Rerun viewer was closed (the run is in {saved})"
+    sink.close()  # quiet: already reported
+    frames = sorted(column(chunks_by_entity(saved)["/world/camera/depth"], "frame"))
+    assert frames == [0, 1, 2]
