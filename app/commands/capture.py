@@ -31,10 +31,9 @@ that a recording has one exposure.
 With --screens, the rig's patterns are shown fullscreen on those screens for
 the whole run (as `lightflow project` does).  Ctrl-C, Esc in a pattern window
 or closing it stops cleanly: queued frames are finished and every output,
-including the recording, is complete.  So does closing the Rerun viewer
-of --spawn.  When processing falls behind, the
-oldest frames are dropped (counted in the status line); --record still gets
-every frame the camera delivers.
+including the recording, is complete.  So does closing the Rerun viewer of
+--spawn.  When processing falls behind, the oldest frames are dropped (counted
+in the status line); --record still gets every frame the camera delivers.
 
 Acquisition never waits on processing: the driver's own thread keeps the
 camera's buffers cycling, and before streaming starts every compiled kernel,
