@@ -474,7 +474,7 @@ class Runner:
                 for text in result.warnings:
                     self._warn_once(text)
                 for sink in self.sinks:
-                    if any(sink is c for c in self._closed_sinks):
+                    if sink in self._closed_sinks:
                         continue
                     try:
                         sink.write(result, snapshot)

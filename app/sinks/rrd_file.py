@@ -70,7 +70,8 @@ class RrdFile:
                     file.write(chunk)
                 except OSError as exc:
                     self.error = exc
-                    file = self._close_quietly(file)
+                    self._close_quietly(file)
+                    file = None
             if file is not None:
                 try:
                     file.close()  # flushes the last buffered bytes, which may fail too
