@@ -511,13 +511,21 @@ class RerunOutput:
         if self.mode == "rrd":
             self.rec.flush()  # keeps the SDK's buffer to a second of data; a viewer may lag
 
+    def _saved(self) -> str:
+        return f" (the run is in {self.save_path})" if self.save_path else ""
+
+    def _exited(self, severed: Exception | None = None) -> DriverError:
+        """The error for a viewer or server child that ended (or a connection severed)."""
+        reason = self.process.exit_reason() if self.process else None
+        kind = "server" if self.mode == "serve" else "viewer"
+        told = f"Rerun {kind} exited ({reason})" if reason else f"Rerun: {severed}"
+        return DriverError(told + self._saved())
+
     def _lost_process(self) -> None:
         assert self.process is not None and self.process.proc is not None
-        saved = f" (the run is in {self.save_path})" if self.save_path else ""
         if self.mode == "spawn" and self.process.proc.returncode == 0:
-            raise OutputClosed(f"the Rerun viewer was closed{saved}")
-        kind = "server" if self.mode == "serve" else "viewer"
-        raise DriverError(f"Rerun {kind} exited ({self.process.exit_reason()}){saved}")
+            raise OutputClosed(f"the Rerun viewer was closed{self._saved()}")
+        raise self._exited()
 
     def _fail(self) -> None:
         assert self._file is not None and self._file.error is not None
@@ -571,12 +579,7 @@ class RerunOutput:
                 if self._file.error is not None:
                     self._fail()
             if severed is not None and not self._gone:
-                reason = self.process.exit_reason() if self.process else None
-                saved = f" (the run is in {self.save_path})" if self.save_path else ""
-                kind = "server" if self.mode == "serve" else "viewer"
-                raise DriverError(
-                    (f"Rerun {kind} exited ({reason})" if reason else f"Rerun: {severed}") + saved
-                )
+                raise self._exited(severed)
         finally:
             if self.mode == "serve" and self.process is not None:
                 self.process.stop()
