@@ -1501,3 +1501,51 @@ def _reject_continuations(bands, counts, pat, runs, done, B, pulse, tol):
                     b[F_VALID] = BAND_OVERLAP
                 prev = b[F_CENTRE]
                 k += step
+
+
+def line_centred(bands: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The bands with every centre on its line's trajectory centre.
+
+    A pulse of a periodic run (``BAND_PERIODIC``) lies on the lines' trajectory
+    centres when the integer part ``n`` of its ``L / B`` is even, and half-way between
+    two of them when ``n`` is odd (see the module's docstring).  Such a pulse's centre
+    is moved by half its interval onto the next line, so that a consumer of line
+    positions (:mod:`.triangulation`) does not read it as a line of its own.  Its other
+    fields are kept.
+
+    Parameters
+    ----------
+    bands, counts : numpy.ndarray
+        Both patterns' bands ``(2, R, max_bands, N_FIELDS)`` and counts ``(2, R)``, as
+        :func:`measure_runs` left them.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``bands`` itself when no pulse lies between lines, else a copy with their
+        centres moved.
+    """
+    if not _odd_pulses(bands, counts, False):
+        return bands
+    out = bands.copy()
+    _odd_pulses(out, counts, True)
+    return out
+
+
+@nb.njit(cache=True, error_model="numpy", **_NO_CFUNC)
+def _odd_pulses(bands, counts, move):
+    """Whether a periodic band has an odd ``n``; with ``move``, their centres moved."""
+    found = False
+    for p in range(counts.shape[0]):
+        for r in range(counts.shape[1]):
+            for k in range(counts[p, r]):
+                b = bands[p, r, k]
+                if b[F_VALID] != BAND_PERIODIC or not b[F_INTERVAL] > 0.0:
+                    continue
+                n = math.floor(b[F_LENGTH] / b[F_INTERVAL])
+                if n % 2 == 1:
+                    if not move:
+                        return True
+                    found = True
+                    b[F_CENTRE] += 0.5 * b[F_INTERVAL]
+    return found

@@ -38,6 +38,7 @@ from .depth_model import DepthRange, proj_u_du, projector_params
 from .geometry import LENS_COEFFICIENTS, undistort_pixels
 from .kernel_options import INTERNAL, NO_CFUNC
 from .medians import median_in_place
+from .overlap import line_centred
 from .patterns import line_columns
 from .rig import Rig
 from .snapping import column_direction
@@ -191,6 +192,8 @@ class LineTriangulation:
         int
             The number of cells written.
         """
+        # a pulse of overlapping bands may lie between two lines: on one of them
+        bands = line_centred(bands, counts)
         n_rows = counts.shape[1]
         line = np.full((2, n_rows, bands.shape[2]), -1, np.int64)
         z = np.full((2, n_rows, bands.shape[2]), np.nan)
