@@ -256,8 +256,12 @@ def _rendered(rec: Path, rig: Rig, scene: str, exposure_s: float, sensor: tuple,
 def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False,
                progress=None, log=print, stages: bool = False,
                blur_calibration: bool = True, only: tuple[str, ...] = (),
-               pictures: Path | None = None, seeds: tuple[int, ...] = ()) -> list:
+               pictures: Path | None = None, seeds: tuple[int, ...] = (),
+               config=None) -> list:
     """Render (or reuse) and score every case; return ``(case, RecordingMetrics)`` pairs.
+
+    ``config``: the :class:`~lightflow.app.core.pipeline.PipelineConfig` the cases are
+    replayed with (default: the pipeline's).
 
     ``only``: shell patterns (``fnmatch``) of case names; when given, just the
     cases that match one of them (a pattern that matches none is a ``ConfigError``).
@@ -305,8 +309,9 @@ def run_matrix(out: Path, frames: int = 2, crop=(800, 600), tuning: bool = False
             rig = calibrated[case.rig_name]
         log(f"{label} scoring {case.name} ...")
         picture = None if pictures is None else pictures / f"{case.name}.png"
-        results.append((case, evaluate_recording(rec, rig=rig, progress=progress, stages=stages,
-                                                 picture=picture, title=case.name)))
+        results.append((case, evaluate_recording(rec, rig=rig, config=config, progress=progress,
+                                                 stages=stages, picture=picture,
+                                                 title=case.name)))  # fmt: skip
     return results
 
 

@@ -89,8 +89,8 @@ def register(subparsers) -> None:
         "--stride",
         type=int,
         default=None,
-        choices=(1, 2, 4),
-        help="analysis grid stride (default: the pipeline's)",
+        choices=(1, 2, 4, 8),
+        help="analysis grid stride (default: the pipeline's; 8 is about twice as fast)",
     )
     p.add_argument(
         "--e2e-frames",

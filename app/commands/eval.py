@@ -86,7 +86,7 @@ def register(subparsers) -> None:
         "--stride",
         type=int,
         default=None,
-        choices=(1, 2, 4),
+        choices=(1, 2, 4, 8),
         help="analysis grid stride of the pipeline (default: the pipeline's)",
     )
     p.add_argument("--stages", action="store_true",
@@ -248,6 +248,7 @@ def _seed_list(text: str) -> tuple[int, ...]:
 def _run_matrix(args: argparse.Namespace) -> int:
     import json
 
+    from lightflow.app.core.pipeline import PipelineConfig
     from lightflow.app.eval_matrix import format_matrix, run_matrix
 
     if args.frames < 1:
@@ -262,12 +263,13 @@ def _run_matrix(args: argparse.Namespace) -> int:
         print(f"\r  {stage} {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
 
     pictures = _pictures_dir(args.pictures)
+    config = None if args.stride is None else PipelineConfig(stride=args.stride)
     results = run_matrix(out, frames=args.frames, tuning=args.tuning_rigs, seeds=seeds,
                          progress=progress,
                          log=lambda text: print(text, file=sys.stderr, flush=True),
                          stages=args.stages, only=tuple(args.case),
                          blur_calibration=not args.no_blur_calibration,
-                         pictures=pictures)  # fmt: skip
+                         pictures=pictures, config=config)  # fmt: skip
     lines = format_matrix(results)
     for line in lines:
         print(line)

@@ -95,7 +95,9 @@ class PipelineConfig:
     stride : int
         Analysis grid stride: bands are measured on every ``stride``-th row and
         flows/depth computed on every ``stride``-th column, then depth is
-        interpolated back to full resolution.
+        interpolated back to full resolution.  1, 2, 4 (the default) or 8, which
+        takes about half the CPU of 4 for the same accuracy and 1-5 points less
+        coverage on the evaluation matrix (more on objects small in the image).
     depth_range : DepthRange
     flow : FlowParams
     bands : BandParams
@@ -162,8 +164,8 @@ class PipelineConfig:
     camera_gamma: float | str | None = None
 
     def __post_init__(self):
-        if self.stride not in (1, 2, 4):
-            raise ConfigError(f"stride: expected 1, 2 or 4, got {self.stride}")
+        if self.stride not in (1, 2, 4, 8):
+            raise ConfigError(f"stride: expected 1, 2, 4 or 8, got {self.stride}")
         lo, hi = rsp.GAMMA_RANGE
         if self.camera_gamma not in (None, "auto") and not lo <= self.camera_gamma <= hi:
             raise ConfigError(f"camera_gamma: expected {lo:g} to {hi:g} (1: a linear camera), "
