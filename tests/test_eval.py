@@ -208,6 +208,23 @@ def test_matrix_case_filter_names_no_case_in_one_line(tmp_path, capsys):
     assert not list((tmp_path / "m").glob("gen*"))  # nothing rendered
 
 
+def test_matrix_replays_with_the_stride_asked_for(tmp_path, monkeypatch):
+    """``--stride`` reaches the matrix's replays (it was ignored there)."""
+    import lightflow.app.eval_matrix as em
+
+    seen = {}
+
+    def run_matrix(out, **kw):
+        seen.update(kw)
+        return []
+
+    monkeypatch.setattr(em, "run_matrix", run_matrix)
+    assert cli_main(["eval", "--matrix", str(tmp_path / "m"), "--stride", "8"]) == 0
+    assert seen["config"].stride == 8
+    assert cli_main(["eval", "--matrix", str(tmp_path / "m")]) == 0
+    assert seen["config"] is None  # the pipeline's own
+
+
 def test_bench_stage_table():
     from lightflow.app.commands.bench import stage_table
 
