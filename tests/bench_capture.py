@@ -45,13 +45,16 @@ def scaled_rig(width: int, height: int, out: Path) -> Path:
     return out
 
 
-def one_run(rig: Path, fps: float, frames: int, rerun: bool, work: Path, i: int) -> dict:
+def one_run(rig: Path, fps: float, frames: int, rerun: bool, work: Path, i: int,
+            stride: int | None = None) -> dict:  # fmt: skip
     rec = work / f"rec{i}"
     cmd = [sys.executable, "-m", "lightflow.app.cli", "capture", "--camera",
            f"aravis:{SIM_ADDRESS}", "--rig", str(rig), "--exposure", "4", "--fps", str(fps),
            "--frames", str(frames), "--record", str(rec), "--lossless"]  # fmt: skip
     if rerun:
         cmd += ["--rrd", str(work / f"run{i}.rrd"), "--compress"]
+    if stride is not None:
+        cmd += ["--stride", str(stride)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     text = proc.stdout + proc.stderr
     lost = re.search(r"lost by the camera (\d+)", text)
@@ -79,6 +82,8 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--hog", action="store_true", help="keep one core busy during the runs")
     p.add_argument("--rerun", action="store_true", help="also write a compressed .rrd")
+    p.add_argument("--stride", type=int, help="the pipeline's analysis grid stride (default: "
+                   "capture's)")  # fmt: skip
     p.add_argument("--scene", help="stream 3 rendered frames of this scene (default: Aravis's "
                    "test pattern, which has no lines)")  # fmt: skip
     args = p.parse_args()
@@ -107,13 +112,14 @@ def runs(args, rig: Path, work: Path) -> int:
     hog = subprocess.Popen([sys.executable, "-c", "while 1: pass"]) if args.hog else None
     try:
         for i in range(args.runs):
-            r = one_run(rig, args.fps, args.frames, args.rerun, work, i)
+            r = one_run(rig, args.fps, args.frames, args.rerun, work, i, args.stride)
             ok = (r["exit"] == 0 and r["lost"] == 0 and r["recorded"] == args.frames
                   and r["consecutive"])  # fmt: skip
             bad += not ok
             print(f"{args.size} at {args.fps:g} fps, {args.frames} frames"
                   f"{', ' + args.scene if args.scene else ''}{', hog' if hog else ''}"
-                  f"{', rrd' if args.rerun else ''}: exit {r['exit']}, "
+                  f"{', rrd' if args.rerun else ''}"
+                  f"{f', stride {args.stride}' if args.stride else ''}: exit {r['exit']}, "
                   f"lost by the camera {r['lost']}, recorded {r['recorded']} "
                   f"(consecutive ids: {'yes' if r['consecutive'] else 'NO'}), depth on "
                   f"{r['processed']} (skipped {r['depth_skipped']}) {' '.join(r['tail'])}",
