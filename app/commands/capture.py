@@ -122,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         describe_blur,
         describe_crosstalk,
         describe_response,
+        describe_speed,
     )
 
     exposure = parse_exposure(args.exposure)
@@ -206,6 +207,9 @@ def run(args: argparse.Namespace) -> int:
             stats = _run_with_patterns(runner, patterns, stop)
     bad = getattr(camera, "bad_frames", [])
     status.finish(stats, bad)
+    hint = describe_speed(stats, pipeline.config.stride)
+    if hint:
+        print(hint, file=sys.stderr)
     print(describe_blur(pipeline), file=sys.stderr)
     print(describe_response(pipeline), file=sys.stderr)
     print(describe_crosstalk(pipeline), file=sys.stderr)
