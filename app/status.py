@@ -128,14 +128,17 @@ def describe_speed(stats: RunStats, stride: int) -> str | None:
     Parameters
     ----------
     stats : RunStats
-        The run's final statistics (``dropped``: frames the pipeline skipped).
+        The run's final statistics: the frames the pipeline skipped are those dropped
+        from its input queue (``extra["dropped_frames_queue"]``; results or outputs
+        dropped later are an output's slowness, not the pipeline's).
     stride : int
         The analysis grid stride the run used.
     """
-    if not stats.frames_in or stats.dropped <= SKIPPED_HINT * stats.frames_in:
+    skipped = int(stats.extra.get("dropped_frames_queue", 0))
+    if not stats.frames_in or skipped <= SKIPPED_HINT * stats.frames_in:
         return None
-    text = (f"depth kept up with {stats.frames_done} of {stats.frames_in} frames "
-            f"(the others were skipped, as counted above)")  # fmt: skip
+    text = (f"depth kept up with {stats.frames_in - skipped} of {stats.frames_in} frames "
+            f"(the pipeline skipped the others, counted above as the frames queue's)")  # fmt: skip
     if stride < 8:
         text += (f"; --stride 8 takes about half the CPU of stride {stride} per frame, for "
                  "the same accuracy and a little less coverage (see --help)")  # fmt: skip

@@ -309,13 +309,19 @@ def test_status_line_and_summary():
 def test_a_live_run_that_skipped_frames_is_told_of_the_faster_grid():
     from lightflow.app.status import describe_speed
 
-    behind = RunStats(frames_in=300, frames_done=152, dropped=148)
-    assert describe_speed(behind, 4) == (
-        "depth kept up with 152 of 300 frames (the others were skipped, as counted above); "
-        "--stride 8 takes about half the CPU of stride 4 per frame, for the same accuracy "
-        "and a little less coverage (see --help)")  # fmt: skip
-    assert describe_speed(behind, 8).endswith("as counted above)")  # no faster grid to offer
-    assert describe_speed(RunStats(frames_in=300, frames_done=280, dropped=20), 4) is None
+    def run(skipped, later=0):
+        return RunStats(frames_in=300, frames_done=300 - skipped, dropped=skipped + later,
+                        extra={"dropped_frames_queue": float(skipped),
+                               "dropped_results_queue": float(later)})  # fmt: skip
+
+    assert describe_speed(run(148), 4) == (
+        "depth kept up with 152 of 300 frames (the pipeline skipped the others, counted "
+        "above as the frames queue's); --stride 8 takes about half the CPU of stride 4 per "
+        "frame, for the same accuracy and a little less coverage (see --help)")  # fmt: skip
+    assert describe_speed(run(148), 8).endswith("frames queue's)")  # no faster grid to offer
+    assert describe_speed(run(20), 4) is None
+    # outputs that fell behind are not the pipeline's doing
+    assert describe_speed(run(0, later=100), 4) is None
     assert describe_speed(RunStats(), 4) is None
 
 

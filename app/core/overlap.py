@@ -1509,9 +1509,9 @@ def line_centred(bands: np.ndarray, counts: np.ndarray) -> np.ndarray:
     A pulse of a periodic run (``BAND_PERIODIC``) lies on the lines' trajectory
     centres when the integer part ``n`` of its ``L / B`` is even, and half-way between
     two of them when ``n`` is odd (see the module's docstring).  Such a pulse's centre
-    is moved by half its interval onto the next line, so that a consumer of line
-    positions (:mod:`.triangulation`) does not read it as a line of its own.  Its other
-    fields are kept.
+    is moved by half its interval (the run's spacing) onto the next line, so that a
+    consumer of line positions (:mod:`.triangulation`) does not read it as a line of its
+    own.  Its other fields are kept: its edges are still where its light is.
 
     Parameters
     ----------

@@ -97,7 +97,8 @@ class PipelineConfig:
         flows/depth computed on every ``stride``-th column, then depth is
         interpolated back to full resolution.  1, 2, 4 (the default) or 8, which
         takes about half the CPU of 4 for the same accuracy and 1-5 points less
-        coverage on the evaluation matrix (more on objects small in the image).
+        coverage on the tuning matrix (-5 to +3 held out; more on objects small in the
+        image).
     depth_range : DepthRange
     flow : FlowParams
     bands : BandParams

@@ -1058,6 +1058,7 @@ def warm_up() -> None:
     bands = np.full((2, 2, 4, 10), np.nan)
     bands[:, :, :3, F_CENTRE] = [[[2.0, 6.0, 10.0]] * 2] * 2
     counts = np.full((2, 2), 3, np.int64)
+    line_centred(bands, counts)
     rays = np.zeros((2, 16, 2))
     rays[..., 0] = np.linspace(-0.1, 0.1, 16)
     projs = np.zeros((1, 17 + LENS_COEFFICIENTS))
