@@ -61,9 +61,13 @@ def add_output_options(p: argparse.ArgumentParser, rerun_required: bool = False)
     )  # fmt: skip
 
 
+#: the analysis grid strides the commands offer (those :class:`PipelineConfig` accepts)
+STRIDES = (1, 2, 4, 8)
+
+
 def add_pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--stride", type=int, choices=(1, 2, 4, 8), default=4,
+        "--stride", type=int, choices=STRIDES, default=4,
         help="analysis grid stride in pixels (1 = finest, slowest; default 4; 8 takes about "
              "half the CPU of 4 for the same accuracy, but a few points less coverage, and "
              "as little as half on an object small in the image: a ball in a 640x480 view "

@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from lightflow.app.core.errors import ConfigError, LightflowError
+from lightflow.app.options import STRIDES
 
 DESCRIPTION = """\
 Measure how long the depth pipeline takes per frame, stage by stage, at the
@@ -89,7 +90,7 @@ def register(subparsers) -> None:
         "--stride",
         type=int,
         default=None,
-        choices=(1, 2, 4, 8),
+        choices=STRIDES,
         help="analysis grid stride (default: the pipeline's; 8 takes about half the CPU)",
     )
     p.add_argument(

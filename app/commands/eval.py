@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from lightflow.app.core.errors import ConfigError
+from lightflow.app.options import STRIDES
 
 DESCRIPTION = """\
 Replay simulated recordings (written by `lightflow simulate`, which stores the
@@ -86,7 +87,7 @@ def register(subparsers) -> None:
         "--stride",
         type=int,
         default=None,
-        choices=(1, 2, 4, 8),
+        choices=STRIDES,
         help="analysis grid stride of the pipeline (default: the pipeline's)",
     )
     p.add_argument("--stages", action="store_true",
