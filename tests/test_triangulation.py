@@ -186,9 +186,18 @@ def test_runs_are_carried_on_to_a_limb_with_no_flow():
           f"x 1030-1070 {have[:, right].mean():.1%}; "
           f"reach x {x[have.any(axis=0)].min():.0f}-{x[have.any(axis=0)].max():.0f}")
     assert have[:, left].mean() > 0.9 and have[:, right].mean() > 0.8
-    # linear between bands on a curved surface: within a millimetre near the limb
-    # (measured: median 0.03 mm, max 0.96 mm)
-    err = np.abs(depth[have] - truth[have])
-    print(f"error: median {np.median(err) * 1e3:.3f} mm, max {err.max() * 1e3:.2f} mm")
-    assert np.median(err) < 1e-4 and np.max(err) < 1.5e-3
+    # the other pattern's depth is carried on along its circle, so the runs reach the
+    # limb (measured: 80 % of the cells at x 200-260, to x 213; with a parabola through
+    # three bands, 33 %)
+    assert have[:, (x > 200.0) & (x < 260.0)].mean() > 0.7
+    # linear between bands on a curved surface: within a millimetre, and within
+    # 2.5 mm in the last 60 px before the limb, where it bends fastest (measured:
+    # median 0.03 mm, max 0.96 mm; 2.34 mm before the limb)
+    err = np.abs(depth - truth)
+    limb = have & (x < 260.0)
+    print(f"error: median {np.median(err[have]) * 1e3:.3f} mm, "
+          f"max {err[have & ~limb].max() * 1e3:.2f} mm, {err[limb].max() * 1e3:.2f} mm "
+          "before the limb")
+    assert np.median(err[have]) < 1e-4 and np.max(err[have & ~limb]) < 1.5e-3
+    assert np.max(err[limb]) < 2.5e-3
     assert not have[:, np.abs(x - 800.0) > 600.0].any()
