@@ -17,8 +17,10 @@ flow's was precise to a centimetre, and it needs no line interval: bands near a
 ball's limb or cut by an edge, rejected for the flow, still have a centre.
 
 A run without a depth of its own takes the lines of the rows above or below (the same
-line continues from row to row), and a decided run is carried on past its ends band by
-band where the other pattern's depth agrees (a ball's limb has no flow).  Cells get
+line continues from row to row), a decided run is carried on past its ends band by
+band where the other pattern's depth agrees (a ball's limb has no flow), and a band
+still undecided takes the line of its line's trace where the trace is decided in the
+rows above and below it.  Cells get
 depth from the triangulated bands along their row, interpolated between two
 neighbouring bands of one surface, and only where the surface moves: the cells a flow
 covers or whose lines are swept, and those between bands linked to them through bands
@@ -27,6 +29,7 @@ of one surface whose lines were not seen standing still.  A static wall keeps no
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -42,7 +45,7 @@ from .overlap import line_centred
 from .patterns import line_columns
 from .rig import Rig
 from .snapping import column_direction
-from .threads import run_rows
+from .threads import run_rows, run_tasks
 
 #: two patterns' triangulated depths of one surface agree within this share of the depth
 #: (a band centre is precise to a few hundredths of a pixel: about 0.1 mm at 0.75 m on
@@ -113,6 +116,18 @@ EXTENT = 1.0
 EXTEND_AGREE = 0.003
 #: ... by at most this many bands on each side
 EXTEND_STEPS = 6
+#: an undecided band takes the line of its line's trace (:func:`_fill_traces`) where the
+#: trace's nearest decided bands above and below, at most this many image rows away,
+#: both have that line ...
+TRACE_REACH_PX = 128.0
+#: ... and its depth on that line lies within this share of theirs, interpolated to its row
+#: (tuning rigs: balls +2 to +11 points of coverage, fans +0 to +2, the fans' depth off
+#: the blades +0.0-0.25 points; 1 % or 4 % and a reach of 64 or 256 px within a point or
+#: two.  Traces that crossed cells near still lines took a fan's hub too, +0.3-0.9
+#: points off the blades on development fans 43-48.  A band carried on from one row
+#: alone, without the other end, took the balls +3 to +9 points further but a fan's blade
+#: lines into its blurred edge, 2 -> 5 % of its depth off the blades)
+TRACE_AGREE = 0.02
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
 
@@ -162,6 +177,7 @@ class LineTriangulation:
         self.rays = np.ascontiguousarray(undistort_pixels(cam.K, cam.dist, pix))
         self.near = float(depth_range.near)
         self.far = float(depth_range.far)
+        self.row_y = np.asarray(row_y, np.float64)
 
     def refine(self, bands, counts, rows_per_cell, stride, prior, moving, depth_grid,
                std_grid, still=None) -> int:  # fmt: skip
@@ -209,12 +225,26 @@ class LineTriangulation:
         _decide_rows(*args, 1, 1, 0, n_rows)
         _decide_rows(*args, 1, -1, 0, n_rows)
         # the runs carried on past their ends (rows on a thread per core)
-        run_rows(_extend_rows, n_rows, bands, counts, self.rays, self.projs, self.proj_of,
-                 self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid)
+        extend = (_extend_rows, n_rows, bands, counts, self.rays, self.projs, self.proj_of,
+                  self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid)
+        run_rows(*extend)
+        # the gaps in a line's trace from row to row filled (the ends above and below on a
+        # thread each), and carried on from again
         if still is None:
             still = np.zeros(moving.shape, np.bool_)
         seeds = moving & (_share(moving, SEED_WINDOW) >= 0.5)
         barrier = still | (_share(still, STILL_WINDOW) >= 0.5)
+        shape = (2, 2, n_rows, max(counts.max(), 1))
+        ends = (np.empty(shape, np.int64), np.empty(shape), np.empty(shape))
+        # (no trace crosses a cell near lines seen standing still: a fan's hub, at the
+        # blades' depth, and the wall behind a blade's blurred edge)
+        near_still = _share(still, STILL_WINDOW) > 0.0
+        run_tasks(*(functools.partial(_trace_ends, bands, counts, self.row_y, line, z, side,
+                                      *ends, near_still, rows_per_cell, stride)
+                    for side in range(2)))  # fmt: skip
+        _fill_traces(bands, counts, self.rays, self.row_y, self.projs, self.proj_of, self.lit,
+                     self.near, self.far, line, z, resid, *ends)
+        run_rows(*extend)
         on_moving = _moving_bands(bands, counts, line, z, rows_per_cell, stride, seeds,
                                   barrier, HOPS)  # fmt: skip
         return _cells(bands, counts, line, z, resid, rows_per_cell, stride, moving, on_moving,
@@ -660,6 +690,111 @@ def _extend_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, nea
                 break
 
 
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
+def _trace_ends(bands, counts, row_y, line, z, side, end_k, end_z, end_y, barrier, k_rows,
+                stride):  # fmt: skip
+    """For :func:`_fill_traces`: the first decided band of each undecided band's trace
+    above it (``side`` 0) or below it (1), through undecided bands only: its line (-1:
+    none, the trace breaks first), depth and image row, into ``end_*[side]``.  A band in
+    a ``barrier`` cell (of the analysis grid: ``k_rows`` measured rows and ``stride``
+    columns a cell) breaks the trace.  One sweep of the rows: a band's is taken over
+    from its link in the row before where that is undecided too (the arrays are written
+    for undecided bands only)."""
+    n_rows = counts.shape[1]
+    step = 1 if side == 0 else -1
+    for i in range(n_rows):
+        r = i if side == 0 else n_rows - 1 - i
+        o = r - step
+        for p in range(2):
+            start = 0
+            for q in range(counts[p, r]):
+                if line[p, r, q] >= 0:
+                    continue
+                end_k[side, p, r, q] = -1
+                x = bands[p, r, q, F_CENTRE]
+                if not (np.isfinite(x) and 0 <= o < n_rows):
+                    continue
+                gh, gw = barrier.shape
+                i = min(r // k_rows, gh - 1)
+                j = min(max(int(round((x - 0.5 * (stride - 1)) / stride)), 0), gw - 1)
+                if barrier[i, j]:
+                    continue
+                q2, start = _nearest_band(bands, counts, p, o, x, start)
+                if q2 < 0:
+                    continue
+                if line[p, o, q2] >= 0:
+                    end_k[side, p, r, q] = line[p, o, q2]
+                    end_z[side, p, r, q] = z[p, o, q2]
+                    end_y[side, p, r, q] = row_y[o]
+                else:
+                    end_k[side, p, r, q] = end_k[side, p, o, q2]
+                    end_z[side, p, r, q] = end_z[side, p, o, q2]
+                    end_y[side, p, r, q] = end_y[side, p, o, q2]
+
+
+@nb.njit(cache=True, error_model="numpy", nogil=True, **NO_CFUNC)
+def _fill_traces(bands, counts, rays, row_y, projs, proj_of, lit, near, far, line, z, resid,
+                 end_k, end_z, end_y):  # fmt: skip
+    """Give an undecided band the line of its trace where the trace is decided on both
+    sides of it (``end_*``: :func:`_trace_ends` of both sides).
+
+    A line's bands form a trace from measured row to measured row (each the nearest band
+    of the next row, within :data:`LINK` of its spacing).  Where a trace's nearest
+    decided bands above and below the band (within :data:`TRACE_REACH_PX`, through
+    undecided bands only) have one line, and the band's depth on it lies within
+    :data:`TRACE_AGREE` of theirs interpolated to its row, the band takes it (a line off
+    moves a depth by 2-7 cm, 3-9 %): a ball's bands where the other pattern is cut or
+    faint for a few rows, or where no flow named their lines.  Both ends are needed: a
+    trace carried on from one end alone runs a fan blade's lines into the blurred edge
+    beyond the blade.  Near lines seen standing still the traces break
+    (:func:`_trace_ends`): a fan's hub, at its blades' depth, is the same surface to them.
+    """
+    for r in range(counts.shape[1]):
+        for p in range(2):
+            pp = projs[proj_of[p]]
+            for q in range(counts[p, r]):
+                if line[p, r, q] >= 0:
+                    continue
+                k = end_k[0, p, r, q]
+                if k < 0 or end_k[1, p, r, q] != k:
+                    continue
+                if not (abs(end_y[0, p, r, q] - row_y[r]) <= TRACE_REACH_PX
+                        and abs(end_y[1, p, r, q] - row_y[r]) <= TRACE_REACH_PX):  # fmt: skip
+                    continue
+                # the depth between the two ends, linear in the image row
+                y0 = end_y[0, p, r, q]
+                f = (row_y[r] - y0) / (end_y[1, p, r, q] - y0)
+                zi = end_z[0, p, r, q] + f * (end_z[1, p, r, q] - end_z[0, p, r, q])
+                rx, ry = _ray_at(rays, r, bands[p, r, q, F_CENTRE])
+                v = _depth_on_line(pp, rx, ry, lit[p, k], zi, near, far)
+                if abs(v - zi) < TRACE_AGREE * v:
+                    line[p, r, q] = k
+                    z[p, r, q] = v
+                    resid[p, r, q] = FLOOR * v
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _nearest_band(bands, counts, p, o, x, start):
+    """The band of row ``o`` nearest to column ``x`` if it lies within :data:`LINK` of its
+    spacing (the same line, a row apart), else -1; and where the search for a larger
+    ``x`` may start (centres are in column order: the bands of a row are matched in one
+    sweep)."""
+    best = -1
+    dist = np.inf
+    for q in range(start, counts[p, o]):
+        d = abs(bands[p, o, q, F_CENTRE] - x)
+        if d < dist:  # false for a NaN centre
+            dist = d
+            best = q
+        elif d > dist:
+            break
+    if best < 0:
+        return -1, start
+    if not dist < LINK * _spacing(bands, p, o, best, counts[p, o]):
+        return -1, best
+    return best, best
+
+
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _other_depth(bands, counts, line, z, rays, p, r, x, direction):
     """Pattern ``p``'s depth at column ``x`` of row ``r`` from three neighbouring decided
@@ -791,20 +926,10 @@ def _same_line(bands, counts, line, p, o, x, start):
     :data:`LINK` of its spacing (the same line, a row apart), else -1; and where the
     search for a larger ``x`` may start (centres are in column order: the bands of a
     row are matched in one sweep)."""
-    best = -1
-    dist = np.inf
-    for q in range(start, counts[p, o]):
-        d = abs(bands[p, o, q, F_CENTRE] - x)
-        if d < dist:  # false for a NaN centre
-            dist = d
-            best = q
-        elif d > dist:
-            break
-    if best < 0:
-        return -1, start
-    if line[p, o, best] < 0 or not dist < LINK * _spacing(bands, p, o, best, counts[p, o]):
-        return -1, best
-    return best, best
+    q, start = _nearest_band(bands, counts, p, o, x, start)
+    if q >= 0 and line[p, o, q] < 0:
+        return -1, q
+    return q, start
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
@@ -1140,6 +1265,12 @@ def warm_up() -> None:
                      1, 4, 0.3, 3.0, line, z, resid, vertical, order, 0, 2)  # fmt: skip
     _extend_rows(bands, counts, rays, projs, zeros, lit, n_lit, np.ones(2, np.int64), 0.3, 3.0,
                  line, z, resid, 0, 2)  # fmt: skip
+    ends = (np.empty((2, 2, 2, 4), np.int64), np.empty((2, 2, 2, 4)), np.empty((2, 2, 2, 4)))
+    for side in range(2):
+        _trace_ends(bands, counts, np.array([0.0, 4.0]), line, z, side, *ends,
+                    np.zeros((2, 4), np.bool_), 1, 4)  # fmt: skip
+    _fill_traces(bands, counts, rays, np.array([0.0, 4.0]), projs, zeros, lit, 0.3, 3.0, line, z,
+                 resid, *ends)  # fmt: skip
     grid = np.full((2, 4), np.nan, np.float32)  # the pipeline's depth and error grids
     moving = np.ones((2, 4), np.bool_)
     on = _moving_bands(bands, counts, line, z, 1, 4, moving, ~moving, HOPS)
