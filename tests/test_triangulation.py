@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from lit_surface import STRIDE, cell_x, refine, surface_bands, triangulation
 
+from lightflow.app.core import triangulation as triangulation_module
 from lightflow.app.core.bands import BAND_PERIODIC, F_CENTRE, F_INTERVAL, F_LENGTH, F_VALID
 from lightflow.app.core.rig import load_rig
 
@@ -84,6 +85,33 @@ def test_a_gap_in_a_lines_trace_takes_the_line_decided_above_and_below():
     print(f"\ngap {have[gap].mean():.1%}, below {have[below].mean():.1%}")
     assert have[gap].mean() > 0.95 and np.all(np.abs(depth[gap][have[gap]] - 0.75) < 1e-5)
     assert not have[below].any() and have[~gap & ~below].all()
+
+
+def test_the_other_patterns_depth_is_carried_on_along_a_circle():
+    """:func:`_circle_depth`: through three points of a sphere, cut by the plane of one
+    image row's rays (tilted: ray y 0.1), the depth on another ray of the row is the
+    sphere's to 1e-9 m up to its limb, and none past it; three points of a plane (in
+    line) give the plane's depth."""
+    circle_depth = triangulation_module._circle_depth.py_func
+    centre, radius, ry = np.array([0.02, 0.06, 0.8]), 0.1, 0.1
+
+    def sphere(rx):  # the near crossing of the ray (rx, ry, 1) with the sphere, or NaN
+        d = np.array([rx, ry, 1.0])
+        b = d @ centre
+        disc = b * b - (d @ d) * (centre @ centre - radius**2)
+        return (b - np.sqrt(disc)) / (d @ d) if disc >= 0 else np.nan
+
+    (ax, bx, cx), limb = (-0.03, 0.0, 0.04), 0.1492  # rx where the row's rays graze it
+    args = (ax, sphere(ax), bx, sphere(bx), cx, sphere(cx), ry)
+    for rx in (-0.05, 0.02, 0.1, 0.145):
+        assert abs(circle_depth(*args, rx) - sphere(rx)) < 1e-9
+    assert np.isnan(sphere(limb + 0.002)) and np.isnan(circle_depth(*args, limb + 0.002))
+
+    def plane(rx):  # z = 0.7 + 0.2 x
+        return 0.7 / (1.0 - 0.2 * rx)
+
+    args = (ax, plane(ax), bx, plane(bx), cx, plane(cx), 0.0)
+    assert abs(circle_depth(*args, 0.2) - plane(0.2)) < 1e-9
 
 
 def test_a_tilted_board_with_a_prior_two_lines_off():

@@ -20,11 +20,11 @@ A run without a depth of its own takes the lines of the rows above or below (the
 line continues from row to row), a decided run is carried on past its ends band by
 band where the other pattern's depth agrees (a ball's limb has no flow), and a band
 still undecided takes the line of its line's trace where the trace is decided in the
-rows above and below it.  Cells get
-depth from the triangulated bands along their row, interpolated between two
-neighbouring bands of one surface, and only where the surface moves: the cells a flow
-covers or whose lines are swept, and those between bands linked to them through bands
-of one surface whose lines were not seen standing still.  A static wall keeps no depth.
+rows above and below it.  Cells get depth from the triangulated bands along their row,
+interpolated between two neighbouring bands of one surface, and only where the surface
+moves: the cells a flow covers or whose lines are swept, and those between bands linked
+to them through bands of one surface whose lines were not seen standing still.  A
+static wall keeps no depth.
 """
 
 from __future__ import annotations
@@ -110,11 +110,14 @@ STILL_WINDOW = 9
 EXTENT = 1.0
 #: a decided run is carried on band by band (:func:`_extend_rows`) where the depth on its
 #: next line agrees within this share with the other pattern's decided bands around it
-#: (tuning rigs, against the parabola through three of them: 0.3 -> 0.5 % gained the
+#: (tuning rigs, against the parabola through three of them, before the circle of
+#: :func:`_other_depth`: 0.3 -> 0.5 % gained the
 #: balls 1-2 points of coverage, and took a fan's off-object depth from 0.8 to 2.7 %: a
 #: blade's next line met by a wall band by chance)
 EXTEND_AGREE = 0.003
-#: ... by at most this many bands on each side
+#: ... by at most this many bands on each side, twice: before the gaps in the lines'
+#: traces are filled (:func:`_fill_traces`) and after (the second time also in rows the
+#: fill did not change: a run stopped by this bound goes on; measured with the fill)
 EXTEND_STEPS = 6
 #: an undecided band takes the line of its line's trace (:func:`_fill_traces`) where the
 #: trace's nearest decided bands above and below, at most this many image rows away,
@@ -126,7 +129,9 @@ TRACE_REACH_PX = 128.0
 #: two.  Traces that crossed cells near still lines took a fan's hub too, +0.3-0.9
 #: points off the blades on development fans 43-48.  A band carried on from one row
 #: alone, without the other end, took the balls +3 to +9 points further but a fan's blade
-#: lines into its blurred edge, 2 -> 5 % of its depth off the blades)
+#: lines into its blurred edge, 2 -> 4-5 % of its depth off the blades.  Irregular bands
+#: are filled too: left out, the balls lost 1-5 points and the fans' depth off the blades
+#: stayed the same)
 TRACE_AGREE = 0.02
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
@@ -177,7 +182,7 @@ class LineTriangulation:
         self.rays = np.ascontiguousarray(undistort_pixels(cam.K, cam.dist, pix))
         self.near = float(depth_range.near)
         self.far = float(depth_range.far)
-        self.row_y = np.asarray(row_y, np.float64)
+        self.row_y = ys
 
     def refine(self, bands, counts, rows_per_cell, stride, prior, moving, depth_grid,
                std_grid, still=None) -> int:  # fmt: skip
@@ -229,16 +234,17 @@ class LineTriangulation:
                   self.lit, self.n_lit, self.direction, self.near, self.far, line, z, resid)
         run_rows(*extend)
         # the gaps in a line's trace from row to row filled (the ends above and below on a
-        # thread each), and carried on from again
+        # thread each), and the runs carried on again from the bands filled
         if still is None:
             still = np.zeros(moving.shape, np.bool_)
         seeds = moving & (_share(moving, SEED_WINDOW) >= 0.5)
-        barrier = still | (_share(still, STILL_WINDOW) >= 0.5)
-        shape = (2, 2, n_rows, max(counts.max(), 1))
+        still_share = _share(still, STILL_WINDOW)
+        barrier = still | (still_share >= 0.5)
+        shape = (2, 2, n_rows, bands.shape[2])
         ends = (np.empty(shape, np.int64), np.empty(shape), np.empty(shape))
         # (no trace crosses a cell near lines seen standing still: a fan's hub, at the
         # blades' depth, and the wall behind a blade's blurred edge)
-        near_still = _share(still, STILL_WINDOW) > 0.0
+        near_still = still_share > 0.0
         run_tasks(*(functools.partial(_trace_ends, bands, counts, self.row_y, line, z, side,
                                       *ends, near_still, rows_per_cell, stride)
                     for side in range(2)))  # fmt: skip
@@ -701,10 +707,13 @@ def _trace_ends(bands, counts, row_y, line, z, side, end_k, end_z, end_y, barrie
     from its link in the row before where that is undecided too (the arrays are written
     for undecided bands only)."""
     n_rows = counts.shape[1]
+    gh, gw = barrier.shape
+    off = 0.5 * (stride - 1)
     step = 1 if side == 0 else -1
-    for i in range(n_rows):
-        r = i if side == 0 else n_rows - 1 - i
+    for n in range(n_rows):
+        r = n if side == 0 else n_rows - 1 - n
         o = r - step
+        ci = min(r // k_rows, gh - 1)
         for p in range(2):
             start = 0
             for q in range(counts[p, r]):
@@ -714,10 +723,7 @@ def _trace_ends(bands, counts, row_y, line, z, side, end_k, end_z, end_y, barrie
                 x = bands[p, r, q, F_CENTRE]
                 if not (np.isfinite(x) and 0 <= o < n_rows):
                     continue
-                gh, gw = barrier.shape
-                i = min(r // k_rows, gh - 1)
-                j = min(max(int(round((x - 0.5 * (stride - 1)) / stride)), 0), gw - 1)
-                if barrier[i, j]:
+                if barrier[ci, min(max(int(round((x - off) / stride)), 0), gw - 1)]:
                     continue
                 q2, start = _nearest_band(bands, counts, p, o, x, start)
                 if q2 < 0:
@@ -825,17 +831,15 @@ def _other_depth(bands, counts, line, z, rays, p, r, x, direction):
             best = q
     if best < 0:
         return np.nan
-    # the three points, the one nearest to x last (its side of the circle is taken)
-    near_first = x < bands[p, r, best, F_CENTRE]
-    pts = np.empty((3, 3))
-    for i in range(3):
-        q = best + (2 - i if near_first else i)
-        rx, ry = _ray_at(rays, r, bands[p, r, q, F_CENTRE])
-        pts[i, 0] = rx
-        pts[i, 1] = ry
-        pts[i, 2] = z[p, r, q]
-    rx, ry = _ray_at(rays, r, x)
-    return _circle_depth(pts, rx, ry)
+    # the three points, ordered so that the last is the one beside x where x lies beyond
+    # them (of the circle's two crossings with the ray, the one nearer its depth is taken)
+    qa, qc = (best + 2, best) if x < bands[p, r, best, F_CENTRE] else (best, best + 2)
+    ax, ay = _ray_at(rays, r, bands[p, r, qa, F_CENTRE])
+    bx, by = _ray_at(rays, r, bands[p, r, best + 1, F_CENTRE])
+    cx, cy = _ray_at(rays, r, bands[p, r, qc, F_CENTRE])
+    rx, _ = _ray_at(rays, r, x)
+    return _circle_depth(ax, z[p, r, qa], bx, z[p, r, best + 1], cx, z[p, r, qc],
+                         (ay + by + cy) / 3.0, rx)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always", **INTERNAL)
@@ -849,10 +853,10 @@ def _ray_at(rays, r, x):
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
-def _circle_depth(pts, rx, ry):
-    """Depth at which the camera ray ``(rx, ry, 1)`` meets the circle through three
-    surface points (``pts``: rows of ray x, ray y and depth), on the side of the last
-    point; NaN where it misses.
+def _circle_depth(ax, az, bx, bz, cx, cz, ry, rx):
+    """Depth at which the camera ray of ray x ``rx`` meets the circle through three
+    surface points of a row (ray x and depth each: ``a``, ``b``, ``c``; ``ry`` their
+    rays' mean y), on the side of the last point; NaN where it misses.
 
     A row's rays lie in one plane through the camera (nearly: a lens bends it a
     little), and that plane cuts a sphere in a circle and a plane in a line (a circle
@@ -862,10 +866,10 @@ def _circle_depth(pts, rx, ry):
     :data:`EXTEND_AGREE`, so the limb's lines were not carried on).
     """
     # in-plane coordinates: x along the row, the depth axis stretched by the plane's tilt
-    s = math.sqrt(1.0 + ((pts[0, 1] + pts[1, 1] + pts[2, 1]) / 3.0) ** 2)
-    x1, y1 = pts[0, 0] * pts[0, 2], pts[0, 2] * s
-    x2, y2 = pts[1, 0] * pts[1, 2], pts[1, 2] * s
-    x3, y3 = pts[2, 0] * pts[2, 2], pts[2, 2] * s
+    s = math.sqrt(1.0 + ry * ry)
+    x1, y1 = ax * az, az * s
+    x2, y2 = bx * bz, bz * s
+    x3, y3 = cx * cz, cz * s
     dx, dy = rx, s  # the ray: t * (dx, dy), t its depth
     det = 2.0 * (x1 * (y2 - y3) + x2 * (y3 - y1) + x3 * (y1 - y2))
     scale = (x3 - x1) ** 2 + (y3 - y1) ** 2
@@ -891,7 +895,7 @@ def _circle_depth(pts, rx, ry):
     root = math.sqrt(disc)
     t1 = (-b - root) / (2.0 * a)
     t2 = (-b + root) / (2.0 * a)
-    return t1 if abs(t1 - pts[2, 2]) <= abs(t2 - pts[2, 2]) else t2
+    return t1 if abs(t1 - cz) <= abs(t2 - cz) else t2
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
