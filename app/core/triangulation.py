@@ -396,7 +396,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                     ell[p, n] = line[p, r, q]
                     zp[p, n] = z[p, r, q]
                 else:
-                    j = min(max(int(round((x - off) / stride)), 0), gw - 1)
+                    j = _cell_column(x, off, stride, gw)
                     zf = prior[i, j]
                     if np.isfinite(zf) and near <= zf <= far:
                         z_named[n] = zf
@@ -723,7 +723,7 @@ def _trace_ends(bands, counts, row_y, line, z, side, end_k, end_z, end_y, barrie
                 x = bands[p, r, q, F_CENTRE]
                 if not (np.isfinite(x) and 0 <= o < n_rows):
                     continue
-                if barrier[ci, min(max(int(round((x - off) / stride)), 0), gw - 1)]:
+                if barrier[ci, _cell_column(x, off, stride, gw)]:
                     continue
                 q2, start = _nearest_band(bands, counts, p, o, x, start)
                 if q2 < 0:
@@ -840,6 +840,13 @@ def _other_depth(bands, counts, line, z, rays, p, r, x, direction):
     rx, _ = _ray_at(rays, r, x)
     return _circle_depth(ax, z[p, r, qa], bx, z[p, r, best + 1], cx, z[p, r, qc],
                          (ay + by + cy) / 3.0, rx)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always", **INTERNAL)
+def _cell_column(x, off, stride, gw):
+    """The analysis grid column of image column ``x`` (``off``: the first cell centre's
+    column; clamped to the ``gw`` columns)."""
+    return min(max(int(round((x - off) / stride)), 0), gw - 1)
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always", **INTERNAL)
@@ -1095,7 +1102,7 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
             tx[r, t] = bands[p, r, q, F_CENTRE]
             tz[r, t] = z[p, r, q]
             ts[r, t] = _spacing(bands, p, r, q, counts[p, r])
-            tc[r, t] = min(max(int(round((tx[r, t] - off) / stride)), 0), gw - 1)
+            tc[r, t] = _cell_column(tx[r, t], off, stride, gw)
     on = np.zeros((2, n_rows, mb), np.bool_)
     dist = np.full((n_rows, kk), -1, np.int64)  # links from a seed; -1: not reached
     queue = np.empty(n_rows * kk, np.int64)
