@@ -13,7 +13,14 @@ import pytest
 from lit_surface import STRIDE, cell_x, refine, surface_bands, triangulation
 
 from lightflow.app.core import triangulation as triangulation_module
-from lightflow.app.core.bands import BAND_PERIODIC, F_CENTRE, F_INTERVAL, F_LENGTH, F_VALID
+from lightflow.app.core.bands import (
+    BAND_PERIODIC,
+    F_CENTRE,
+    F_INTERVAL,
+    F_LENGTH,
+    F_VALID,
+    N_FIELDS,
+)
 from lightflow.app.core.rig import load_rig
 
 RIGS = Path(__file__).resolve().parents[1] / "app" / "rigs"
@@ -112,6 +119,51 @@ def test_the_other_patterns_depth_is_carried_on_along_a_circle():
 
     args = (ax, plane(ax), bx, plane(bx), cx, plane(cx), 0.0)
     assert abs(circle_depth(*args, 0.2) - plane(0.2)) < 1e-9
+
+
+def test_the_other_patterns_depth_reaches_further_only_towards_a_limb(monkeypatch):
+    """:func:`_other_depth` carries a run's circle on for one of its spacings, and up to
+    ``FAR_REACH`` of them where the spacings change towards the band (a limb: 15 % here,
+    three points of a sphere), flagged as far; on a board (equal spacings) no further
+    than one."""
+    for name in ("_ray_at", "_circle_depth"):  # kernels without a Python entry point
+        monkeypatch.setattr(triangulation_module, name,
+                            getattr(triangulation_module, name).py_func)  # fmt: skip
+    other_depth = triangulation_module._other_depth.py_func
+    width, f, c0 = 1600, 1000.0, 800.0
+    rays = np.zeros((1, width, 2))
+    rays[0, :, 0] = (np.arange(width) - c0) / f  # one image row, ray y 0
+    centre, radius = np.array([0.02, 0.0, 0.8]), 0.1
+
+    def sphere(rx):
+        d = np.array([rx, 0.0, 1.0])
+        b = d @ centre
+        return (b - np.sqrt(b * b - (d @ d) * (centre @ centre - radius**2))) / (d @ d)
+
+    def run(rxs, depth):
+        """The first pattern's three decided bands at rays ``rxs`` (lines 10-12)."""
+        bands = np.full((2, 1, 4, N_FIELDS), np.nan)
+        bands[0, 0, :3, F_CENTRE] = c0 + f * np.asarray(rxs)
+        counts = np.array([[3], [0]])
+        line = np.full((2, 1, 4), -1, np.int64)
+        line[0, 0, :3] = (10, 11, 12)
+        z = np.full((2, 1, 4), np.nan)
+        z[0, 0, :3] = [depth(rx) for rx in rxs]
+        return lambda rx: other_depth(bands, counts, line, z, rays, 0, 0, c0 + f * rx, 1)
+
+    # the sphere's limb lies at ray x 0.1514; surface points 0.2 rad apart, up to 0.7 rad
+    th = np.array([0.3, 0.5, 0.7])
+    rxs = (centre[0] + radius * np.sin(th)) / (centre[2] - radius * np.cos(th))
+    s = rxs[2] - rxs[1]  # 15 % shorter than the spacing before
+    ball = run(rxs, sphere)
+    for k, far in ((0.5, False), (1.5, True)):
+        w, flag = ball(rxs[2] + k * s)
+        assert flag == far and abs(w - sphere(rxs[2] + k * s)) < 1e-9
+    assert np.isnan(ball(rxs[2] + 2.2 * s)[0])  # past FAR_REACH (and the limb)
+    board = run([0.0, 0.03, 0.06], lambda rx: 0.75)
+    w, flag = board(0.06 + 0.8 * 0.03)
+    assert not flag and abs(w - 0.75) < 1e-9
+    assert np.isnan(board(0.06 + 1.5 * 0.03)[0])
 
 
 def test_a_tilted_board_with_a_prior_two_lines_off():
