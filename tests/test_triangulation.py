@@ -300,3 +300,53 @@ def test_runs_are_carried_on_to_a_limb_with_no_flow():
     assert np.median(err[have]) < 1e-4 and np.max(err[have & ~limb]) < 1.5e-3
     assert np.max(err[limb]) < 2.5e-3
     assert not have[:, np.abs(x - 800.0) > 600.0].any()
+
+
+def round_surface(cam):
+    """A vertical cylinder of radius 0.1 m, its axis 0.85 m away on the camera's optical
+    axis, before a wall at 1.1 m: depth of image column x (``cam``: an undistorted
+    camera; the rays of a column graze it, at its limb, or miss it)."""
+
+    def depth(x):
+        rx = (np.asarray(x, np.float64) - cam.K[0, 2]) / cam.K[0, 0]
+        # (rx t)^2 + (t - 0.85)^2 = 0.1^2, the near root
+        a, b, c = rx * rx + 1.0, -2.0 * 0.85, 0.85**2 - 0.1**2
+        disc = b * b - 4.0 * a * c
+        near = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)
+        return np.where(disc > 0.0, near, 1.1)
+
+    return depth
+
+
+def test_the_cells_past_the_last_band_reach_the_limb_on_the_circle():
+    """A cylinder whose bands near its left limb are too faint to see (none of either
+    pattern within 30 px of it), the flows' depth and the moving cells only on its middle:
+    the cells between its last bands and the limb take the depth of the circle through
+    the last three bands of a run (:func:`_limb_depth`), and none lies past the limb.
+    (Measured: all the cells of the 30 px ring, 1.85 mm off at most, where the surface
+    turns away fastest; none past the limb.  Without the limb's circle: none of the
+    ring, the cells reaching x 626 of the limb's 590.)"""
+    rig, tri, bands, counts, grid = setup()
+    surface = round_surface(rig.camera)
+    bands, counts = surface_bands(rig, tri, tri.row_y, surface)
+    x = cell_x(grid)
+    limb = x[np.argmax(surface(x) < 1.0)]  # the first column on the cylinder
+    centre = bands[:, :, :, F_CENTRE]
+    centre[centre < limb + 30.0] = np.nan
+    truth = cell_truth(grid, surface)
+    middle = np.abs(surface(x) - 0.75) < 0.01
+    prior = np.where(middle, truth, np.nan).astype(np.float32)
+    depth = np.full(grid, np.nan, np.float32)
+    std = np.full(grid, np.nan, np.float32)
+    moving = np.broadcast_to(middle, grid).copy()
+    tri.refine(bands, counts, 1, STRIDE, prior, moving, depth, std)
+    have = np.isfinite(depth)
+    ring = (x > limb) & (x < limb + 30.0)
+    err = np.abs(depth - truth)
+    print(f"\nlimb x {limb:.0f}, reach x {x[have.any(axis=0)].min():.0f}; ring: "
+          f"{have[:, ring].mean():.1%} of the cells, "
+          f"max {err[:, ring][have[:, ring]].max() * 1e3 if have[:, ring].any() else 0:.2f} mm; "
+          f"past the limb: {have[:, x < limb].sum()} cells")
+    assert have[:, ring].mean() > 0.9
+    assert err[:, ring][have[:, ring]].max() < 2.5e-3
+    assert not have[:, x < limb].any()

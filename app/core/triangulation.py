@@ -36,7 +36,7 @@ import cv2
 import numba as nb
 import numpy as np
 
-from .bands import BAND_IRREGULAR, F_CENTRE, F_END, F_START, F_VALID
+from .bands import BAND_CUT, BAND_IRREGULAR, F_CENTRE, F_END, F_START, F_VALID
 from .depth_model import DepthRange, proj_u_du, projector_params
 from .geometry import LENS_COEFFICIENTS, undistort_pixels
 from .kernel_options import INTERNAL, NO_CFUNC
@@ -144,6 +144,20 @@ TRACE_AGREE = 0.02
 FAR_REACH = 2.0
 LIMB_CHANGE = 0.1
 FAR_AGREE = 0.5
+#: a cell beyond a ball's last triangulated band, towards its limb, takes the depth of the
+#: circle through that band and the next two of its run (:func:`_limb_depth`) where their
+#: spacings change by :data:`LIMB_CHANGE` or more and the circle ends (its rays miss it)
+#: within this many of the band's spacings: the limb is where the circle ends, not half a
+#: spacing past the band ...
+LIMB_CLOSE = 1.5
+#: ... for at most one of its spacings, and half-way at most to the next band without a
+#: line (the wall behind a blade's edge).  Tuning rigs: the balls +1 to +7 points of
+#: coverage (one projector's two balls +7), 0.0-0.05 % of their depth off them; fans and
+#: boards unchanged but for the distorted rig's fan (+0.17 points off the blades, onto its
+#: hub in the first frame).  Without that half-way bound the development fans took
+#: +0.0-0.3 points off the blades; with a cut band among the three, the boards before a
+#: wall +0.4 (a cut band's centre bends the circle)
+LIMB_REACH = 1.0
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
 
@@ -265,7 +279,7 @@ class LineTriangulation:
         on_moving = _moving_bands(bands, counts, line, z, rows_per_cell, stride, seeds,
                                   barrier, HOPS)  # fmt: skip
         return _cells(bands, counts, line, z, resid, rows_per_cell, stride, moving, on_moving,
-                      depth_grid, std_grid)  # fmt: skip
+                      barrier, self.rays, depth_grid, std_grid)  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
@@ -1179,11 +1193,12 @@ def _moving_bands(bands, counts, line, z, k_rows, stride, seeds, still, hops):
 
 
 @nb.njit(cache=True, error_model="numpy", **NO_CFUNC)
-def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, depth_grid,
-           std_grid):  # fmt: skip
+def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, barrier, rays,
+           depth_grid, std_grid):  # fmt: skip
     """Depth of the cells on a moving surface from the triangulated bands along their row:
     any cell of ``moving``, and any other between two bands of ``on_moving`` or on the light
-    of one (:data:`EXTENT`)."""
+    of one (:data:`EXTENT`), or past one towards a limb (:func:`_limb_depth`) outside the
+    ``barrier`` of still lines."""
     gh, gw = depth_grid.shape
     mb = bands.shape[2]
     off = 0.5 * (stride - 1)
@@ -1196,6 +1211,8 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, dep
     sb = np.empty(2 * mb)
     sp = np.empty(2 * mb, np.int64)
     sq = np.empty(2 * mb, np.int64)
+    free = np.empty((2, 2 * mb))
+    ptr = np.empty(2, np.int64)
     written = 0
     for i in range(gh):
         r = i * k_rows
@@ -1214,6 +1231,7 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, dep
             sm[t] = on_moving[p, r, q]
         if n == 0:
             continue
+        _free_sides(bands, counts, line, r, sx, n, ptr, free)
         t = 0
         for j in range(gw):
             x = j * stride + off
@@ -1257,11 +1275,95 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, dep
                         if abs(w - sz[u]) <= STEP * sz[u]:
                             v = w
                             e = max(sr[u], sr[nxt])
+            if not np.isfinite(v) and not barrier[i, j]:
+                for u in (t - 1, t):
+                    if 0 <= u < n and sm[u]:
+                        w = _limb_depth(bands, counts, line, z, rays, r, sp[u], sq[u], x,
+                                        free[int(x > sx[u]), u])  # fmt: skip
+                        if np.isfinite(w):
+                            v = w
+                            e = sr[u]
+                            break
             if np.isfinite(v):
                 depth_grid[i, j] = v
                 std_grid[i, j] = math.sqrt((FLOOR * v) ** 2 + e * e)
                 written += 1
     return written
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _free_sides(bands, counts, line, r, sx, n, nxt, free):
+    """For each of row ``r``'s ``n`` triangulated bands (centres ``sx``, in column order),
+    the distance to the nearest band of either pattern on its left (``free[0]``) and on
+    its right (``free[1]``) if that band has a centre but no line; infinite otherwise.
+    ``nxt``: scratch, one per pattern."""
+    nxt[0] = 0
+    nxt[1] = 0
+    for t in range(n):
+        x = sx[t]
+        dl = np.inf
+        dr = np.inf
+        kl = 0
+        kr = 0
+        for o in range(2):
+            m = counts[o, r]
+            # pattern o's first band right of x (centres in column order; NaN ones passed)
+            while nxt[o] < m and not bands[o, r, nxt[o], F_CENTRE] > x:
+                nxt[o] += 1
+            if nxt[o] < m and bands[o, r, nxt[o], F_CENTRE] - x < dr:
+                dr = bands[o, r, nxt[o], F_CENTRE] - x
+                kr = line[o, r, nxt[o]]
+            u = nxt[o] - 1
+            while u >= 0 and not bands[o, r, u, F_CENTRE] < x:
+                u -= 1
+            if u >= 0 and x - bands[o, r, u, F_CENTRE] < dl:
+                dl = x - bands[o, r, u, F_CENTRE]
+                kl = line[o, r, u]
+        free[0, t] = dl if kl < 0 else np.inf
+        free[1, t] = dr if kr < 0 else np.inf
+
+
+@nb.njit(cache=True, error_model="numpy", **INTERNAL)
+def _limb_depth(bands, counts, line, z, rays, r, p, q, x, free):
+    """Depth at column ``x`` past band ``q`` of pattern ``p`` (row ``r``) towards a limb,
+    or NaN: on the circle through it and the next two bands of its run away from ``x``
+    (decided on consecutive lines, none cut), if their spacings change by
+    :data:`LIMB_CHANGE` or more and the circle ends within :data:`LIMB_CLOSE` of the
+    spacing next to ``x``, for :data:`LIMB_REACH` of it at most, and half-way at most to
+    the nearest band without a line beyond (``free``)."""
+    xu = bands[p, r, q, F_CENTRE]
+    dq = -1 if x > xu else 1
+    q1 = q + dq
+    q2 = q + 2 * dq
+    if not (0 <= q1 < counts[p, r] and 0 <= q2 < counts[p, r]):
+        return np.nan
+    k0, k1, k2 = line[p, r, q], line[p, r, q1], line[p, r, q2]
+    if k1 < 0 or k2 < 0 or abs(k1 - k0) != 1 or k2 - k1 != k1 - k0:
+        return np.nan
+    for b in (q, q1, q2):
+        if bands[p, r, b, F_VALID] == BAND_CUT:  # its centre would bend the circle
+            return np.nan
+    x1 = bands[p, r, q1, F_CENTRE]
+    x2 = bands[p, r, q2, F_CENTRE]
+    near = abs(xu - x1)
+    d = abs(x - xu)
+    if d > LIMB_REACH * near or d > 0.5 * free or abs(near / abs(x1 - x2) - 1.0) < LIMB_CHANGE:
+        return np.nan
+    ax, ay = _ray_at(rays, r, x2)
+    bx, by = _ray_at(rays, r, x1)
+    cx, cy = _ray_at(rays, r, xu)
+    ry = (ay + by + cy) / 3.0
+    za, zb, zc = z[p, r, q2], z[p, r, q1], z[p, r, q]
+    # the circle must end near: past a plane's last band the surface may go on or not
+    end = xu - dq * LIMB_CLOSE * near
+    if not 0.0 <= end <= rays.shape[1] - 2:
+        return np.nan
+    ex, _ = _ray_at(rays, r, end)
+    if np.isfinite(_circle_depth(ax, za, bx, zb, cx, zc, ry, ex)):
+        return np.nan
+    rx, _ = _ray_at(rays, r, x)
+    w = _circle_depth(ax, za, bx, zb, cx, zc, ry, rx)
+    return w if abs(w - zc) <= STEP * zc else np.nan  # false for NaN
 
 
 def _share(mask: np.ndarray, window: int) -> np.ndarray:
@@ -1303,4 +1405,4 @@ def warm_up() -> None:
     grid = np.full((2, 4), np.nan, np.float32)  # the pipeline's depth and error grids
     moving = np.ones((2, 4), np.bool_)
     on = _moving_bands(bands, counts, line, z, 1, 4, moving, ~moving, HOPS)
-    _cells(bands, counts, line, z, resid, 1, 4, moving, on, grid, grid.copy())
+    _cells(bands, counts, line, z, resid, 1, 4, moving, on, moving, rays, grid, grid.copy())
