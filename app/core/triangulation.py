@@ -1355,12 +1355,12 @@ def _limb_depth(bands, counts, line, z, rays, r, p, q, x, free):
     ry = (ay + by + cy) / 3.0
     za, zb, zc = z[p, r, q2], z[p, r, q1], z[p, r, q]
     # the circle must end near: past a plane's last band the surface may go on or not
+    # (unless that lies past the image's border, up to which the band's surface goes on)
     end = xu - dq * LIMB_CLOSE * near
-    if not 0.0 <= end <= rays.shape[1] - 2:
-        return np.nan
-    ex, _ = _ray_at(rays, r, end)
-    if np.isfinite(_circle_depth(ax, za, bx, zb, cx, zc, ry, ex)):
-        return np.nan
+    if 0.0 <= end <= rays.shape[1] - 2:
+        ex, _ = _ray_at(rays, r, end)
+        if np.isfinite(_circle_depth(ax, za, bx, zb, cx, zc, ry, ex)):
+            return np.nan
     rx, _ = _ray_at(rays, r, x)
     w = _circle_depth(ax, za, bx, zb, cx, zc, ry, rx)
     return w if abs(w - zc) <= STEP * zc else np.nan  # false for NaN
