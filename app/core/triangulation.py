@@ -1277,7 +1277,8 @@ def _cells(bands, counts, line, z, resid, k_rows, stride, moving, on_moving, bar
                             e = max(sr[u], sr[nxt])
             if not np.isfinite(v) and not barrier[i, j]:
                 for u in (t - 1, t):
-                    if 0 <= u < n and sm[u]:
+                    # (the spacing next to the band, away from x, is at most twice its mean)
+                    if 0 <= u < n and sm[u] and abs(x - sx[u]) <= 2.0 * LIMB_REACH * ss[u]:
                         w = _limb_depth(bands, counts, line, z, rays, r, sp[u], sq[u], x,
                                         free[int(x > sx[u]), u])  # fmt: skip
                         if np.isfinite(w):
