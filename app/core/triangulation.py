@@ -1328,10 +1328,10 @@ def _free_sides(bands, counts, line, r, sx, n, nxt, free):
 def _limb_depth(bands, counts, line, z, rays, r, p, q, x, free):
     """Depth at column ``x`` past band ``q`` of pattern ``p`` (row ``r``) towards a limb,
     or NaN: on the circle through it and the next two bands of its run away from ``x``
-    (decided on consecutive lines, none cut), if their spacings change by
-    :data:`LIMB_CHANGE` or more and the circle ends within :data:`LIMB_CLOSE` of the
-    spacing next to ``x``, for :data:`LIMB_REACH` of it at most, and half-way at most to
-    the nearest band without a line beyond (``free``)."""
+    (decided on consecutive lines, none cut), if their two spacings differ by
+    :data:`LIMB_CHANGE` or more and the circle ends within :data:`LIMB_CLOSE` times the
+    band's spacing to the next of them, for :data:`LIMB_REACH` times it at most, and
+    half-way at most to the nearest band without a line beyond the band (``free``)."""
     xu = bands[p, r, q, F_CENTRE]
     dq = -1 if x > xu else 1
     q1 = q + dq
@@ -1347,8 +1347,10 @@ def _limb_depth(bands, counts, line, z, rays, r, p, q, x, free):
     x1 = bands[p, r, q1, F_CENTRE]
     x2 = bands[p, r, q2, F_CENTRE]
     near = abs(xu - x1)
+    beyond = abs(x1 - x2)
     d = abs(x - xu)
-    if d > LIMB_REACH * near or d > 0.5 * free or abs(near / abs(x1 - x2) - 1.0) < LIMB_CHANGE:
+    if not (beyond > 0.0 and d <= LIMB_REACH * near and d <= 0.5 * free
+            and abs(near / beyond - 1.0) >= LIMB_CHANGE):  # fmt: skip
         return np.nan
     ax, ay = _ray_at(rays, r, x2)
     bx, by = _ray_at(rays, r, x1)
