@@ -121,42 +121,6 @@ def test_the_other_patterns_depth_is_carried_on_along_a_circle():
     assert abs(circle_depth(*args, 0.2) - plane(0.2)) < 1e-9
 
 
-def test_the_other_runs_depth_is_read_on_a_parabola():
-    """:func:`_stencil`: a band compares its depth with the other pattern's run read on
-    the parabola through the two bands around it and the nearer next one.  Across a
-    ball (radius 170 px, 0.685 m away at 0.5 mm per px) whose sparser pattern's bands lie
-    a quarter of it apart, a straight line between two bands is up to 0.59 % off (more
-    than ``AGREE``), the parabola 0.14 %.  Two bands give the straight line, one its own
-    depth."""
-    stencil = triangulation_module._stencil.py_func
-    xo = np.array([110.0, 190.0, 270.0, 350.0])
-    radius, zc = 170.0, 1370.0  # a ball's depth along one row, in pixel units
-
-    def ball(x):
-        return zc - np.sqrt(radius**2 - (x - 230.0) ** 2)
-
-    def read(x, lo=0, hi=None, depth=ball):
-        hi = len(xo) if hi is None else hi
-        u = lo
-        while u + 2 < hi and xo[u + 1] < x:  # as _samples finds the band before x
-            u += 1
-        u0, *w = stencil(xo, lo, hi, u, x)
-        return sum(wk * depth(xo[u0 + k]) for k, wk in enumerate(w) if u0 + k < hi)
-
-    worst_line = worst_parabola = 0.0
-    for x in np.linspace(110.0, 350.0, 41):
-        u = min(max(int(np.searchsorted(xo, x)) - 1, 0), len(xo) - 2)
-        line = ball(xo[u]) + (x - xo[u]) / (xo[u + 1] - xo[u]) * (ball(xo[u + 1]) - ball(xo[u]))
-        worst_line = max(worst_line, abs(line - ball(x)) / ball(x))
-        worst_parabola = max(worst_parabola, abs(read(x) - ball(x)) / ball(x))
-    print(f"\nstraight line {worst_line:.2%}, parabola {worst_parabola:.3%}")
-    assert worst_line > 0.0055 and worst_parabola < 0.0016
-    # a parabola is read exactly; two bands give the straight line, one its own depth
-    assert abs(read(300.0, depth=lambda x: 2.0 + 1e-4 * x * x) - (2.0 + 9.0)) < 1e-9
-    assert abs(read(200.0, 1, 3, depth=lambda x: 3.0 * x) - 600.0) < 1e-9
-    assert read(200.0, 2, 3, depth=lambda x: 3.0 * x) == 3.0 * xo[2]
-
-
 def test_the_other_patterns_depth_reaches_further_only_towards_a_limb(monkeypatch):
     """:func:`_other_depth` carries a run's circle on for one of its spacings, and up to
     ``FAR_REACH`` of them where the spacings change towards the band (a limb: 15 % here,

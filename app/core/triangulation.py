@@ -160,8 +160,9 @@ LIMB_CLOSE = 1.5
 LIMB_REACH = 1.0
 #: a band without a line between two triangulated bands splits their surface where, at the
 #: depth between them, its projector column lies further than this from a line (in lines;
-#: :func:`_split_pairs`).  Development fans 43-48: 0.0-0.44 points less of their
-#: depth off the blades, 0.0-0.1 points less coverage (0.15: the same within 0.15 points)
+#: :func:`_split_pairs`).  Development fans 43-48: 0.0-0.45 points less of their
+#: depth off the blades (the wall between two blades at one depth), 0.0-0.2 points less
+#: coverage (0.15 instead: within 0.15 points of that)
 SPLIT = 0.25
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
@@ -387,7 +388,7 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
     # the bands a pair of runs compares (:func:`_samples`)
     s_t = np.empty(2 * SAMPLES, np.int64)
     s_u = np.empty(2 * SAMPLES, np.int64)
-    s_f = np.empty((2 * SAMPLES, 3))
+    s_f = np.empty(2 * SAMPLES)
     prio = np.empty(mb)
     fresh = np.empty((2, mb), np.bool_)
     # the projector column and its slope at a band's flow prior, computed once
@@ -645,12 +646,10 @@ def _decide_rows(bands, counts, rays, projs, proj_of, lit, n_lit, direction, pri
                                 continue
                             while u + 2 < ob and xs[1 - p, u + 1] < x:
                                 u += 1
-                            u0, w0, w1, w2 = _stencil(xs[1 - p], oa, ob, u, x)
-                            w = w0 * exact[1 - p, u0]
-                            if ob - oa > 1:
-                                w += w1 * exact[1 - p, u0 + 1]
-                            if ob - oa > 2:
-                                w += w2 * exact[1 - p, u0 + 2]
+                            f = (x - xs[1 - p, u]) / (xs[1 - p, u + 1] - xs[1 - p, u]) \
+                                if ob - oa > 1 else 0.0  # fmt: skip
+                            w = exact[1 - p, u] + f * (exact[1 - p, min(u + 1, ob - 1)]
+                                                       - exact[1 - p, u])  # fmt: skip
                             dev[t - a] = abs(v - w) / v
                             good[t - a] = dev[t - a] < AGREE
                         for t in range(a, b):
@@ -1001,39 +1000,15 @@ def _linkable(bands, counts, line, r, o):
     return False
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always", **INTERNAL)
-def _stencil(xo, oa, ob, u, x):
-    """Where a band at column ``x`` reads the other run's depths (its bands ``oa .. ob``
-    at columns ``xo``, ``u`` the one before ``x``): the first of up to three of them and
-    their weights, the parabola through the two around ``x`` and the nearer next one.
-    A straight line between two bands misses a ball's depth by the sagitta, 0.3-0.4 %
-    where the sparser pattern's bands lie a quarter of the ball apart: as much as
-    :data:`AGREE`, so that the right pair of lines no longer stood out."""
-    if ob - oa < 2:
-        return u, 1.0, 0.0, 0.0
-    if ob - oa == 2:
-        f = (x - xo[u]) / (xo[u + 1] - xo[u])
-        return u, 1.0 - f, f, 0.0
-    # the nodes u - 1, u, u + 1 or u, u + 1, u + 2: the third nearer x
-    u0 = u
-    if u + 2 >= ob or (u - 1 >= oa and x - xo[u - 1] < xo[u + 2] - x):
-        u0 = u - 1
-    x0, x1, x2 = xo[u0], xo[u0 + 1], xo[u0 + 2]
-    w0 = (x - x1) * (x - x2) / ((x0 - x1) * (x0 - x2))
-    w1 = (x - x0) * (x - x2) / ((x1 - x0) * (x1 - x2))
-    w2 = (x - x0) * (x - x1) / ((x2 - x0) * (x2 - x1))
-    return u0, w0, w1, w2
-
-
 @nb.njit(cache=True, error_model="numpy", **INTERNAL)
 def _samples(xs, zp, a0, b0, a1, b1, lo, hi, s_t, s_u, s_f):
     """The bands at which :func:`_disagreement` compares two runs' depths: up to
     :data:`SAMPLES` bands of each inside ``lo .. hi`` that have a prior (``zp``: a run
     can reach from a moving surface onto a still one), evenly spread.  Into ``s_t``
-    their slots, ``s_u`` the first of the other run's bands they are read on and
-    ``s_f`` those bands' weights (:func:`_stencil`); returns how many, and how many of
-    them are the first run's.  The same for every pair of candidates: found once per
-    pair of runs, not for each of the 25."""
+    their slots, ``s_u`` the other run's band before them and ``s_f`` their share of
+    the way to its next (where it has one); returns how many, and how many of them
+    are the first run's.  The same for every pair of candidates: found once per pair
+    of runs, not for each of the 25."""
     n = 0
     n_first = 0
     for p in range(2):
@@ -1059,7 +1034,9 @@ def _samples(xs, zp, a0, b0, a1, b1, lo, hi, s_t, s_u, s_f):
                 while u + 2 < ob and xs[1 - p, u + 1] < x:
                     u += 1
                 s_t[n] = t
-                s_u[n], s_f[n, 0], s_f[n, 1], s_f[n, 2] = _stencil(xs[1 - p], oa, ob, u, x)
+                s_u[n] = u
+                if ob - oa > 1:
+                    s_f[n] = (x - xs[1 - p, u]) / (xs[1 - p, u + 1] - xs[1 - p, u])
                 n += 1
         if p == 0:
             n_first = n
@@ -1079,11 +1056,10 @@ def _disagreement(cand, a0, b0, a1, b1, c0, c1, s_t, s_u, s_f, n, n_first, bound
         t = s_t[i]
         u = s_u[i]
         v = cand[p, t, c]
-        w = s_f[i, 0] * cand[1 - p, u, oc]
         if ob - oa > 1:
-            w += s_f[i, 1] * cand[1 - p, u + 1, oc]
-        if ob - oa > 2:
-            w += s_f[i, 2] * cand[1 - p, u + 2, oc]
+            w = cand[1 - p, u, oc] + s_f[i] * (cand[1 - p, u + 1, oc] - cand[1 - p, u, oc])
+        else:
+            w = cand[1 - p, u, oc]
         if not (np.isfinite(v) and np.isfinite(w)):
             return np.inf
         tmp[i] = abs(v - w) / v
