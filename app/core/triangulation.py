@@ -162,7 +162,7 @@ LIMB_REACH = 1.0
 #: depth between them, its projector column lies further than this from a line (in lines;
 #: :func:`_split_pairs`).  Development fans 43-48: 0.0-0.45 points less of their
 #: depth off the blades (the wall between two blades at one depth), 0.0-0.2 points less
-#: coverage (0.15 instead: within 0.15 points of that)
+#: coverage (0.15, tried together with a change since dropped: within 0.15 points of 0.25)
 SPLIT = 0.25
 #: Newton iterations for the depth at which a ray meets a line's plane
 NEWTON = 8
