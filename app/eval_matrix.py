@@ -324,17 +324,20 @@ def format_matrix(results) -> list[str]:
     def pct(v):
         return "–" if not math.isfinite(v) else f"{v * 100:.0f} %"
 
+    def gross(v):  # a few tenths of a per cent are worth showing here
+        return "–" if not math.isfinite(v) else f"{v * 100:.1f} %"
+
     lines = ["| rig | scene | exposure | median \\|error\\| mm | median signed mm | p90 mm | "
-             "coverage | depth off the object | within 1σ / 2σ | "
+             "2 cm off or more | coverage | depth off the object | within 1σ / 2σ | "
              "no depth on the object, by cause |",
-             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for case, m in results:
         causes = sorted(m.no_depth_causes.items(), key=lambda kv: -kv[1])[:3]
         why = ", ".join(f"{name} {share * 100:.0f} %" for name, share in causes) or "–"
         lines.append(
             f"| {case.rig_name} | {case.scene} | {case.exposure_s * 1e3:g} ms | "
             f"{mm(m.median_error_m)} | {mm(m.median_signed_m)} | {mm(m.p90_error_m)} | "
-            f"{pct(m.coverage)} | {pct(m.off_object)} | "
+            f"{gross(m.gross)} | {pct(m.coverage)} | {pct(m.off_object)} | "
             f"{pct(m.within_1sigma)} / {pct(m.within_2sigma)} | {why} |"
         )
     return lines

@@ -48,6 +48,10 @@ SCENE_FORMAT = "lightflow-ground-truth/1"
 _TUKEY_C = 4.685
 #: MAD to standard deviation for Gaussian residuals
 _MAD_SCALE = 1.4826
+#: an error this large (m) or larger is gross: a wrong line (one line off moves a depth
+#: by 2-7 cm on the evaluation rigs) or a flow far off, not noise.  The median and even
+#: the 90th percentile hide such errors when they are fewer than one pixel in ten.
+GROSS_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,9 @@ class FrameMetrics:
         Absolute depth error on the moving object (NaN without any estimate there).
     median_signed_m : float
         Median of estimate minus truth: a bias shows here, not in the absolute error.
+    gross : float
+        Fraction of the depth pixels on the moving object that are :data:`GROSS_M` or
+        more off (NaN without any estimate there).
     off_object : float
         Fraction of depth pixels that are not on a moving object (0 without depth).
     plane_rmse_m : float
@@ -99,6 +106,7 @@ class FrameMetrics:
     n_within_1sigma: int = 0
     n_within_2sigma: int = 0
     target_causes: tuple = ()
+    gross: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -129,6 +137,7 @@ class RecordingMetrics:
     within_2sigma: float = math.nan
     no_depth_causes: dict = field(default_factory=dict)
     stages: dict = field(default_factory=dict)
+    gross: float = math.nan
 
     def to_dict(self) -> dict:
         """JSON-ready summary (NaN becomes null), with the per-frame figures."""
@@ -333,6 +342,7 @@ def evaluate_frame(
         n_within_1sigma=n1,
         n_within_2sigma=n2,
         target_causes=target_causes,
+        gross=_gross_share(errors),
         coverage=n_covered / n_target if n_target else math.nan,
         median_error_m=med,
         mean_error_m=mean,
@@ -347,6 +357,13 @@ def evaluate_frame(
         n_plane=n_plane,
         errors=errors,
     )
+
+
+def _gross_share(errors: np.ndarray) -> float:
+    """Share of the errors at least :data:`GROSS_M` in size (NaN without any)."""
+    if errors.size == 0:
+        return math.nan
+    return float(np.count_nonzero(np.abs(errors) >= GROSS_M) / errors.size)
 
 
 def _error_stats(errors: np.ndarray) -> tuple[float, float, float, float]:
@@ -374,6 +391,7 @@ def pool_metrics(per_frame: list[FrameMetrics]) -> dict[str, float]:
         "mean_error_m": mean,
         "p90_error_m": p90,
         "median_signed_m": signed,
+        "gross": _gross_share(errors),
         "off_object": sum(m.n_off for m in per_frame) / n_depth if n_depth else 0.0,
         "plane_rmse_m": math.sqrt(sq / n_plane) if n_plane else math.nan,
         **_sigma_and_causes(per_frame, n_target),

@@ -48,6 +48,8 @@ def test_coverage_and_off_object_counting():
     assert m.median_error_m == pytest.approx(0.04, abs=1e-6)
     assert m.mean_error_m == pytest.approx(0.0725, abs=1e-6)
     assert m.p90_error_m == pytest.approx(0.05 + 0.7 * 0.15, abs=1e-6)
+    # 2 cm or more: 0.03, 0.05 and 0.2
+    assert m.gross == pytest.approx(0.75)
     assert math.isnan(m.plane_rmse_m)  # not planar
     # without n_projectors, "all projectors" is inferred from the bits present
     assert evaluate_frame(depth, truth).n_target == 4
@@ -60,7 +62,7 @@ def test_empty_estimate():
     truth = _truth(np.ones((3, 3)), np.full((3, 3), 2), np.full((3, 3), 1), planar=True)
     m = evaluate_frame(np.full((3, 3), np.nan, np.float32), truth, camera_rays_stub(3, 3))
     assert m.coverage == 0.0 and m.off_object == 0.0 and m.n_depth == 0
-    assert math.isnan(m.median_error_m) and math.isnan(m.plane_rmse_m)
+    assert math.isnan(m.median_error_m) and math.isnan(m.plane_rmse_m) and math.isnan(m.gross)
 
 
 def camera_rays_stub(h, w, f=100.0):
@@ -115,6 +117,8 @@ def test_pooling_weights_pixels():
     assert pooled["off_object"] == pytest.approx(1 / 5)
     # errors 0.1, 0.1, 0.0, 0.3 pooled: median 0.1
     assert pooled["median_error_m"] == pytest.approx(0.1, abs=1e-6)
+    # 2 cm or more: three of the four
+    assert pooled["gross"] == pytest.approx(3 / 4)
 
 
 def test_nice_ticks():
