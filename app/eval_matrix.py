@@ -321,11 +321,8 @@ def format_matrix(results) -> list[str]:
     def mm(v):
         return "–" if not math.isfinite(v) else f"{v * 1e3:.1f}"
 
-    def pct(v):
-        return "–" if not math.isfinite(v) else f"{v * 100:.0f} %"
-
-    def gross(v):  # a few tenths of a per cent are worth showing here
-        return "–" if not math.isfinite(v) else f"{v * 100:.1f} %"
+    def pct(v, digits=0):
+        return "–" if not math.isfinite(v) else f"{v * 100:.{digits}f} %"
 
     lines = ["| rig | scene | exposure | median \\|error\\| mm | median signed mm | p90 mm | "
              "2 cm off or more | coverage | depth off the object | within 1σ / 2σ | "
@@ -337,7 +334,7 @@ def format_matrix(results) -> list[str]:
         lines.append(
             f"| {case.rig_name} | {case.scene} | {case.exposure_s * 1e3:g} ms | "
             f"{mm(m.median_error_m)} | {mm(m.median_signed_m)} | {mm(m.p90_error_m)} | "
-            f"{gross(m.gross)} | {pct(m.coverage)} | {pct(m.off_object)} | "
+            f"{pct(m.gross, 1)} | {pct(m.coverage)} | {pct(m.off_object)} | "
             f"{pct(m.within_1sigma)} / {pct(m.within_2sigma)} | {why} |"
         )
     return lines

@@ -350,3 +350,22 @@ def test_matrix_on_fresh_seeds(tmp_path, capsys):
     assert not (tmp_path / "m").exists()  # nothing created
     assert cli_main(["eval", "--seeds", "3"]) == 2
     assert capsys.readouterr().err == "lightflow: error: --seeds: only with --matrix DIR\n"
+
+
+def test_matrix_table_shows_the_gross_share_to_a_tenth():
+    """The matrix table's columns line up with its header, and the share of depth 2 cm off
+    or more shows to a tenth of a per cent (a few tenths are worth seeing there)."""
+    from types import SimpleNamespace
+
+    from lightflow.app.eval_matrix import format_matrix
+
+    case = SimpleNamespace(rig_name="gen2026", scene="fan-1ms", exposure_s=0.001)
+    m = SimpleNamespace(median_error_m=1e-4, median_signed_m=-1e-4, p90_error_m=0.0052,
+                        gross=0.069, coverage=0.75, off_object=0.02, within_1sigma=0.87,
+                        within_2sigma=0.9, no_depth_causes={"irregular": 0.1})  # fmt: skip
+    head, rule, row = format_matrix([(case, m)])
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    names = [c.strip() for c in head.replace("\\|", "/").strip("|").split("|")]
+    assert len(cells) == len(names) == rule.count("---")
+    assert cells[names.index("2 cm off or more")] == "6.9 %"
+    assert cells[names.index("coverage")] == "75 %"
