@@ -152,7 +152,11 @@ def state_task(
             break
         if updates_state(pipeline, k):
             set_frame_count(pipeline, k)
-            pipeline.process(_frame(recording, i, load_frame(recording, i)))
+            # the first frame compared with the next, as in a sequential replay
+            ahead = None
+            if k == 0 and len(good) > 1:
+                ahead = _frame(recording, good[1], load_frame(recording, good[1]))
+            pipeline.process(_frame(recording, i, load_frame(recording, i)), ahead)
     return {"states": states, "task_s": time.perf_counter() - t0}
 
 
@@ -169,6 +173,7 @@ def chunk_task(
     export_ply: bool,
     marker: str,
     hook: Callable | None = None,
+    following: int | None = None,
 ) -> dict:
     """Process the good frames ``indices`` of a chunk (the first being good frame number
     ``start`` of the recording), write their outputs, then the marker.
@@ -176,7 +181,9 @@ def chunk_task(
     ``state`` is the pipeline state before the good frame ``lead`` (recording index) just
     before the chunk (``None`` for the first chunk): that frame is processed first and not
     written, because a frame's depth also depends on how its lines moved since the one
-    before (:func:`lightflow.app.core.flow.moved_lines`).
+    before (:func:`lightflow.app.core.flow.moved_lines`).  ``following``: for the first
+    chunk, the recording's second good frame, which its first frame is compared with
+    (``DepthPipeline.process``), as a sequential replay does.
     """
     if hook is not None:
         hook(rec, indices)
@@ -205,7 +212,10 @@ def chunk_task(
         image = load_frame(recording, i)
         bytes_in += (recording.root / recording.frames[i].file).stat().st_size
         tb = time.perf_counter()
-        result = pipeline.process(_frame(recording, i, image))
+        ahead = None
+        if state is None and i == indices[0] and following is not None:
+            ahead = _frame(recording, following, load_frame(recording, following))
+        result = pipeline.process(_frame(recording, i, image), ahead)
         tc = time.perf_counter()
         for sink in sinks:
             sink.write(result, stats)
@@ -595,7 +605,8 @@ def _run_jobs(client, pending, options: BatchOptions, progress: BatchProgress, j
             lead = None if c == 0 else job.good[c * size - 1]
             submit(job, "chunk", c, chunk_task, job.rec, rig, cfg, indices, c * size, state,
                    lead, str(job.out), options.export_depth, options.export_ply,
-                   str(job.marker(c)), options.hook)  # fmt: skip
+                   str(job.marker(c)), options.hook,
+                   job.good[1] if c == 0 and len(job.good) > 1 else None)  # fmt: skip
             job.chunks_left += 1
         if job.chunks_left == 0:
             finish(job)

@@ -522,7 +522,12 @@ def evaluate_recording(
             )
         planar = planar or truth.planar
         frame = Frame(i, entry.t, rec.exposure_s, load_frame(rec, i), entry.stem)
-        result = pipeline.process(frame)
+        following = None
+        if i == 0 and len(rec.frames) > 1:
+            # as a replay does: the first frame's lines compared with the next frame's
+            e1 = rec.frames[1]
+            following = Frame(1, e1.t, rec.exposure_s, load_frame(rec, 1), e1.stem)
+        result = pipeline.process(frame, following)
         per_frame.append(evaluate_frame(result.depth, truth, rays, n_proj, result.depth_std,
                                         result.causes_grid, result.stride,
                                         background=still))  # fmt: skip

@@ -426,12 +426,14 @@ class Runner:
 
     def _process(self) -> None:
         try:
-            while True:
-                item = self.frames_q.get()
-                if item is _END:
-                    break
+            # the first frame's lines are compared with the next frame's (see
+            # DepthPipeline.process): it waits for that frame
+            item = self.frames_q.get()
+            following = None if item is _END else self.frames_q.get()
+            while item is not _END:
                 frame, t_capture = item
-                result = self.pipeline.process(frame)
+                ahead = None if following is None or following is _END else following[0]
+                result = self.pipeline.process(frame, ahead)
                 total = result.timings_ms.get("total")
                 if total is not None:
                     with self._lock:
@@ -441,6 +443,8 @@ class Runner:
                 if not self.results_q.put((result, t_capture)):
                     break
                 self._update_drops()
+                item = self.frames_q.get() if following is None else following
+                following = None
         except BaseException as exc:  # noqa: BLE001 - stored, re-raised by join()
             self._fail(exc)
             self.frames_q.abort()  # unblock the capture thread

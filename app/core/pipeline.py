@@ -77,6 +77,14 @@ MIN_SLOW_SHARE = 0.0025
 #: fans had 4 % of their depth on hub and wall; 0 cells cost two development balls 2-10
 #: points, 2 cells 1-5, 4 cells 0-2)
 MOVED_NEAR_DEPTH_CELLS = 4
+#: the first frame, compared with the next one (``process(frame, following)``): lines that
+#: moved mark a moving surface only within its own depth or enclosed by it, over gaps of up
+#: to twice this many grid cells (a ball's slow middle; not the wall ahead of a blade,
+#: where the next frame's blade came: within 4 cells of the depth the fans had 0.3-7.5
+#: points more depth off the blades on 3 of 4 tuning and fresh rigs; enclosed over 2
+#: cells, tuning, development and fresh balls +0.1 to +5.3 points of coverage, fans within
+#: +0.05 points off the blades; over 3 cells, balls +0.1 to +6.7, fans up to +0.16)
+ENCLOSE_GAP_CELLS = 2
 #: depth from the line intervals (two projectors): random error of one band's log
 #: interval ratio, and the error no averaging removes (line centres biased by blur and
 #: sweep, the tables' geometry, a curved surface), one sigma (tuning rigs: the intervals
@@ -490,8 +498,27 @@ class DepthPipeline:
         """
         return self._measure(frame, {})[2]
 
-    def process(self, frame) -> FrameResult:
-        """Depth for one frame.  Never raises on image content: bad pixels are NaN."""
+    def process(self, frame, following=None) -> FrameResult:
+        """Depth for one frame.  Never raises on image content: bad pixels are NaN.
+
+        ``following``: the next frame, used for the first frame of a sequence only (a
+        replay passes it).  Lines that stand still within an exposure can still belong
+        to a moving surface (a ball's slow middle, its lines moving along themselves):
+        between frames they move.  A later frame compares its lines with the frame
+        before (:func:`~.flow.moved_lines`, near the depth that frame measured); the
+        first has none before it, so it compares them with the next frame's, processed
+        first without changing the pipeline's state (this frame costs about twice as
+        much), and only inside its own moving surfaces (:data:`ENCLOSE_GAP_CELLS`).
+        """
+        ahead = following is not None and self._previous_lines is None and self._frames == 0
+        if ahead:
+            # the next frame processed as if it came first, then the state put back: only
+            # its lines and depth stay, as a frame before this one would leave them
+            saved = self.state()
+            self.process(following)
+            lines, depth = self._previous_lines, self._previous_depth
+            self.restore(saved)
+            self._previous_lines, self._previous_depth = lines, depth
         cfg = self.config
         t0 = time.perf_counter()
         timings = {}
@@ -504,9 +531,7 @@ class DepthPipeline:
                 self._previous_lines = None
         moved = None if self._previous_lines is None else moved_lines(grids, self._previous_lines)
         if moved is not None and self._previous_depth is not None:
-            near = cv2.dilate(np.isfinite(self._previous_depth).view(np.uint8),
-                              np.ones((2 * MOVED_NEAR_DEPTH_CELLS + 1,) * 2, np.uint8))
-            moved &= near.view(bool)
+            moved &= _near(self._previous_depth)
         self._previous_lines = grids[:, :2].copy()
         t2 = time.perf_counter()
         flows = functools.partial(self.flow_model.combine, grids, cfg.flow, self._periodic)
@@ -567,6 +592,11 @@ class DepthPipeline:
             # stand still within it)
             moving = fm.swept | np.isfinite(depth_grid)
             still = why == cz.STATIC
+            if ahead:
+                # the first frame: only inside its own moving surfaces (the flows' depth).
+                # A blade's lines moved where the next frame's blade came: the wall ahead
+                # of it, next to its depth
+                moved &= _enclosed(depth_grid)
             if moved is not None:
                 still &= ~moved
             self._triangulation.refine(bands, counts, self._rows_per_cell, cfg.stride,
@@ -1135,3 +1165,23 @@ def _join_interval_depth(z, var, swept, curved, max_std, near, far, depth, std, 
                 w_int = one / (s * s)
                 depth[i, j] = (d * w_flow + zz * w_int) / (w_flow + w_int)
                 std[i, j] = one / np.sqrt(w_flow + w_int)
+
+
+def _near(depth: np.ndarray) -> np.ndarray:
+    """The cells within :data:`MOVED_NEAR_DEPTH_CELLS` of a finite ``depth`` cell."""
+    near = cv2.dilate(np.isfinite(depth).view(np.uint8),
+                      np.ones((2 * MOVED_NEAR_DEPTH_CELLS + 1,) * 2, np.uint8))
+    return near.view(bool)
+
+
+def _enclosed(depth: np.ndarray) -> np.ndarray:
+    """The cells with a finite ``depth`` or enclosed by them, over gaps of up to
+    ``2 * ENCLOSE_GAP_CELLS`` cells."""
+    has = cv2.dilate(np.isfinite(depth).view(np.uint8),
+                     np.ones((2 * ENCLOSE_GAP_CELLS + 1,) * 2, np.uint8))
+    h, w = has.shape
+    # flood the outside from a border of zeros around the grid
+    outside = np.zeros((h + 2, w + 2), np.uint8)
+    outside[1:-1, 1:-1] = has
+    cv2.floodFill(outside, np.zeros((h + 4, w + 4), np.uint8), (0, 0), 2)
+    return outside[1:-1, 1:-1] != 2
