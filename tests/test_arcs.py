@@ -266,6 +266,37 @@ def test_a_band_without_a_depth_of_its_own_takes_the_nearest_cells(rig):
     assert arcs.correct(bands, counts, _none(bands), far, 1, STRIDE, ITOL)[:2] == (0, 0)
 
 
+def test_a_limb_band_placed_at_a_depth_the_frame_does_not_measure_is_placed_again(rig):
+    """A limb band has no depth of its own: its arc is placed at the nearest cell's, which
+    near a limb can be far off (other limb bands' flows).  Where the depth then measured at
+    the band's own cell disagrees by more than RECHECK, ``recheck`` puts it there, and the
+    arcs placed again give the band its true interval."""
+    y = 620.0
+    bands, counts, truths, depth, ys = _bands(rig, y, BALL, 300.0, 1300.0, limb_ends=True)
+    ends = [(p, e) for p in range(2) for e in (0, counts[p, M] - 1)]
+    first = depth * 1.4  # the first pass's depth around the run, 40 % far
+    for p, e in ends:
+        j = int(round((bands[p, M, e, F_CENTRE] - 1.5) / STRIDE))
+        first[:, j - 1: j + 2] = np.nan
+    arcs = ArcIntervals(rig, ys)
+    before = bands.copy()
+    arcs.correct(bands, counts, _none(bands), first, 1, STRIDE, ITOL)
+    rescued = [(p, e) for p, e in ends if bands[p, M, e, F_VALID] == BAND_VALID]
+    assert rescued
+    off = [bands[p, M, e, F_INTERVAL] / truths[p][e] - 1 for p, e in rescued]
+    assert max(np.abs(off)) > 0.03, off  # placed 40 % far: several per cent long
+    # the frame then measures its depth at the bands' cells (here: the truth)
+    again = arcs.recheck(before, bands, counts, first, depth, 1, STRIDE)
+    assert again is not None
+    second = before.copy()
+    arcs.correct(second, counts, _none(second), again, 1, STRIDE, ITOL)
+    for p, e in rescued:
+        assert second[p, M, e, F_VALID] == BAND_VALID
+        assert second[p, M, e, F_INTERVAL] == pytest.approx(truths[p][e], rel=5e-3)
+    # where the depth measured agrees with the one the arcs were placed at: nothing to redo
+    assert arcs.recheck(before, second, counts, again, again, 1, STRIDE) is None
+
+
 def test_snapped_neighbours_take_their_nominal_centres(rig):
     """Lines on whole projector columns move each centre by up to half a column: the arc
     through them bends with it.  Where snapping knows the run's lines, the arc goes
@@ -311,5 +342,8 @@ def test_the_option_turns_the_arcs_off(rig):
     assert pipeline_config(parser.parse_args([])).arc_intervals
     off = pipeline_config(parser.parse_args(["--arc-intervals", "off"]))
     assert not off.arc_intervals
+    # placing the arcs again (ArcIntervals.recheck) is an option, off by default
+    assert not pipeline_config(parser.parse_args([])).arc_recheck
+    assert pipeline_config(parser.parse_args(["--arc-recheck", "on"])).arc_recheck
     assert DepthPipeline(rig, PipelineConfig(arc_intervals=False))._arcs is None
     assert DepthPipeline(rig, PipelineConfig())._arcs is not None

@@ -93,6 +93,11 @@ def register(subparsers) -> None:
         choices=STRIDES,
         help="analysis grid stride of the pipeline (default: the pipeline's)",
     )
+    p.add_argument(
+        "--arc-recheck", choices=("on", "off"), default="off",
+        help="score the pipeline with `replay --arc-recheck on` (default: off, the "
+        "pipeline's default)",
+    )
     p.add_argument("--stages", action="store_true",
                    help="also trace the error to its stage: each pattern's flow against the "
                    "renderer's true flows (from `simulate --truth-flows`, or computed from "
@@ -187,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
         require_truth(rec)
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ConfigError(f"--plot {args.plot}: expected a .png file name")
-    config = PipelineConfig() if args.stride is None else PipelineConfig(stride=args.stride)
+    config = _config(args) or PipelineConfig()
     pictures = _pictures_dir(args.pictures)
     results = []
     for rec in args.recordings:
@@ -252,7 +257,6 @@ def _seed_list(text: str) -> tuple[int, ...]:
 def _run_matrix(args: argparse.Namespace) -> int:
     import json
 
-    from lightflow.app.core.pipeline import PipelineConfig
     from lightflow.app.eval_matrix import format_matrix, run_matrix
 
     if args.frames < 1:
@@ -267,7 +271,7 @@ def _run_matrix(args: argparse.Namespace) -> int:
         print(f"\r  {stage} {i}/{n}", end="\n" if i == n else "", file=sys.stderr, flush=True)
 
     pictures = _pictures_dir(args.pictures)
-    config = None if args.stride is None else PipelineConfig(stride=args.stride)
+    config = _config(args)
     results = run_matrix(out, frames=args.frames, tuning=args.tuning_rigs, seeds=seeds,
                          progress=progress,
                          log=lambda text: print(text, file=sys.stderr, flush=True),
@@ -286,3 +290,15 @@ def _run_matrix(args: argparse.Namespace) -> int:
     print(f"table written to {out / 'matrix.md'}, metrics to {out / 'matrix.json'}"
           + (f", pictures to {pictures}/" if pictures is not None else ""))
     return 0
+
+
+def _config(args: argparse.Namespace):
+    """The pipeline's configuration the options ask for; None for its default."""
+    from lightflow.app.core.pipeline import PipelineConfig
+
+    changed = {}
+    if args.stride is not None:
+        changed["stride"] = args.stride
+    if args.arc_recheck == "on":
+        changed["arc_recheck"] = True
+    return PipelineConfig(**changed) if changed else None
