@@ -58,7 +58,9 @@ class FrameResult:
     stride : int
         Grid stride of the ``*_grid`` maps.
     timings_ms : dict
-        Time spent in each pipeline stage for this frame.
+        Time spent in each pipeline stage for this frame (ms); ``total`` is the whole
+        call, with ``next frame`` for a first frame processed after the next one
+        (:meth:`DepthPipeline.process`'s ``following``).
     coverage : float
         Fraction of the analysis-grid pixels that got a depth ("depth on image").
     depth_std_grid : numpy.ndarray or None
