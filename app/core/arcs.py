@@ -105,7 +105,7 @@ DEPTH_REACH = 6
 #: 0.1 gained one case 2 points, 0.2 the same as 0.1.  The depth measured is the
 #: smoothed one with the intervals' (a median of the flows' own around the band, or the
 #: smoothed depth without the intervals', kept most of the first pass's errors)
-RECHECK = 0.2
+RECHECK = 0.05
 #: a steep band's arc and those through its line and the next two on either side must
 #: agree within this share: one smooth surface.  Beside a depth edge they differ by far
 #: more (the ball before a wall of tests/test_arcs.py), on a sphere by under 0.01 %
